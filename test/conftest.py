@@ -1,0 +1,40 @@
+"""
+Shared fixtures: an analytic flexure table that the core tests can reason about.
+
+Any ROS process a test starts talks to loopback only, on a domain of its own.
+"""
+
+import os
+
+from flexure_ctrl.core.design import CharacterisationData, Design, LinkGeometry
+import numpy as np
+import pytest
+
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
+
+FLEXURE_LENGTH_M = 0.03
+STROKE_M = 0.045
+
+
+def arc_table(theta_max_rad=0.75, points=19, stroke_m=STROKE_M, wobble_rad=0.05):
+    """Tip poses of a flexure bending as a circular arc, angle nonlinear in l0."""
+    l0 = np.linspace(-stroke_m, stroke_m, points)
+    theta = theta_max_rad * l0 / stroke_m + wobble_rad * np.sin(np.pi * l0 / stroke_m)
+    safe = np.where(theta == 0.0, 1.0, theta)
+    x = np.where(theta == 0.0, FLEXURE_LENGTH_M, FLEXURE_LENGTH_M * np.sin(theta) / safe)
+    y = np.where(theta == 0.0, 0.0, FLEXURE_LENGTH_M * (1.0 - np.cos(theta)) / safe)
+    return CharacterisationData(l0, x, y, theta)
+
+
+def arc_design(branch='above', geometry=None, **table_kwargs):
+    return Design(
+        name='arc', description='analytic circular-arc flexure', provenance='synthetic',
+        provenance_note='test fixture', recommended=True, warning='', branch=branch,
+        stroke_limit_m=STROKE_M, table=arc_table(**table_kwargs),
+        geometry=geometry or LinkGeometry(0.5, 0.0, 0.5, 0.0))
+
+
+@pytest.fixture
+def design():
+    return arc_design()
