@@ -73,7 +73,7 @@ def solve_and_report(design, path, rate_hz: float, out_dir: Path, plot: bool = T
         column = extensions[:, index] * 1e3
         print(f'  actuator {index + 1}: {column.min():+8.3f} .. {column.max():+8.3f} mm '
               f'(stroke +-{design.stroke_limit_m * 1e3:.1f} mm)')
-    print(f'  max end-point residual {residual.max() * 1e9:.3f} nm, '
+    print(f'  max end-point residual {residual.max():.2e} m, '
           f'solved in {elapsed_s * 1e3:.1f} ms')
     print(f'  wrote {csv_path}')
     if plot:
