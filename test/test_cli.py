@@ -1,0 +1,65 @@
+"""The flexure-ctrl command line: solve, demo, designs, and honest errors."""
+
+import csv
+
+from flexure_ctrl.cli.main import main
+from flexure_ctrl.core.design import load_design
+from flexure_ctrl.core.kinematics import TwoLinkArm
+import numpy as np
+import pytest
+
+
+def read_csv(path):
+    with open(path, newline='') as stream:
+        rows = list(csv.DictReader(stream))
+    return {key: np.array([float(row[key]) for row in rows]) for key in rows[0]}
+
+
+def test_solve_writes_extensions_that_reach_the_path(tmp_path, capsys):
+    assert main(['solve', '--design', 'pf', '--rate', '20', '--period', '7', '--out',
+                 str(tmp_path), '--no-plot']) == 0
+    table = read_csv(tmp_path / 'extensions.csv')
+    assert len(table['t_s']) == 141 and table['t_s'][-1] == pytest.approx(7.0)
+    np.testing.assert_allclose(table['x_p_m'], 1.015)
+    arm = TwoLinkArm.from_design(load_design('pf'))
+    ends = arm.forward(table['l01_m'], table['l02_m'])
+    # The CSV keeps 9 significant digits: ~1e-10 m in l0, amplified ~30x by the arm.
+    np.testing.assert_allclose(ends[:, 1], table['y_p_m'], atol=1e-7)
+    assert 'max end-point residual' in capsys.readouterr().out
+
+
+def test_solve_reads_waypoints(tmp_path):
+    waypoints = tmp_path / 'path.csv'
+    waypoints.write_text('t_s,x_m,y_m\n0,1.0,0.1\n2,1.01,-0.05\n')
+    assert main(['solve', '--design', 'cfb', '--waypoints', str(waypoints), '--rate', '10',
+                 '--out', str(tmp_path / 'out'), '--no-plot']) == 0
+    assert len(read_csv(tmp_path / 'out' / 'extensions.csv')['t_s']) == 21
+
+
+def test_demo_writes_a_plot_per_paper_design(tmp_path):
+    assert main(['demo', '--rate', '5', '--out', str(tmp_path)]) == 0
+    for name in ('cfa', 'cfb', 'pf'):
+        assert (tmp_path / name / 'solve.png').stat().st_size > 10_000
+
+
+def test_unreachable_waypoint_is_an_error_not_a_clip(tmp_path, capsys):
+    waypoints = tmp_path / 'far.csv'
+    waypoints.write_text('t_s,x_m,y_m\n0,1.015,0.0\n1,1.3,0.0\n')
+    status = main(['solve', '--design', 'cfa', '--waypoints', str(waypoints), '--rate', '10',
+                   '--out', str(tmp_path), '--no-plot'])
+    assert status == 2
+    assert 'cannot be reached' in capsys.readouterr().err
+    assert not (tmp_path / 'extensions.csv').exists()
+
+
+def test_unknown_design_is_a_clear_error(capsys):
+    assert main(['solve', '--design', 'nope', '--no-plot']) == 2
+    assert "no design named 'nope'" in capsys.readouterr().err
+
+
+def test_designs_lists_every_design(capsys):
+    assert main(['designs']) == 0
+    out = capsys.readouterr().out
+    for name in ('pf', 'cfa', 'cfb', 'cfc', 'cfa_m4', 'cfb_m1'):
+        assert f'\n{name} ' in out
+    assert 'Not recommended' in out
