@@ -8,7 +8,7 @@ from flexure_ctrl.core.design import available_designs, load_design
 def add_parser(commands) -> None:
     parser = commands.add_parser(
         'designs', help='list the flexure designs and their stroke, branch and provenance',
-        description='List the design files found by name (FLEXURE_CTRL_DESIGN_DIR, the '
+        description='List the design files found by name (FLEXURE_CTRL_CONFIG_DIR/designs, the '
                     'source tree, then the installed share folder).')
     parser.set_defaults(run=run)
 

@@ -80,18 +80,18 @@ class Design:
     source_path: Optional[str] = None
 
 
-def design_search_dirs() -> list:
+def config_search_dirs() -> list:
     """
-    Folders searched for ``<name>.yaml`` by :func:`find_design_file`, in order.
+    Return the folders searched for configuration files, in order.
 
-    ``FLEXURE_CTRL_DESIGN_DIR`` first (a lab's own designs), then the source tree's
-    ``config/designs`` and finally the installed ``share/flexure_ctrl/config/designs``.
+    ``FLEXURE_CTRL_CONFIG_DIR`` first (a lab's own files), then the source tree's
+    ``config/`` and finally the installed ``share/flexure_ctrl/config``.
     """
     dirs = []
-    override = os.environ.get('FLEXURE_CTRL_DESIGN_DIR')
+    override = os.environ.get('FLEXURE_CTRL_CONFIG_DIR')
     if override:
         dirs.append(Path(override))
-    dirs.append(Path(__file__).resolve().parents[2] / 'config' / 'designs')
+    dirs.append(Path(__file__).resolve().parents[2] / 'config')
     try:
         from ament_index_python.packages import get_package_share_directory
         from ament_index_python.packages import PackageNotFoundError
@@ -101,8 +101,23 @@ def design_search_dirs() -> list:
         share = Path(get_package_share_directory('flexure_ctrl'))
     except (PackageNotFoundError, ValueError, LookupError):
         return dirs
-    dirs.append(share / 'config' / 'designs')
+    dirs.append(share / 'config')
     return dirs
+
+
+def find_config_file(relative: PathLike) -> Path:
+    """Return the first existing ``<config dir>/<relative>``; raise FileNotFoundError."""
+    for folder in config_search_dirs():
+        path = folder / relative
+        if path.is_file():
+            return path
+    raise FileNotFoundError(
+        f'{relative} not found in {", ".join(str(d) for d in config_search_dirs())}')
+
+
+def design_search_dirs() -> list:
+    """Return the folders searched for ``<name>.yaml`` designs: ``designs/`` of each config dir."""
+    return [folder / 'designs' for folder in config_search_dirs()]
 
 
 def available_designs() -> list:

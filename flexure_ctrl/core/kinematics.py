@@ -49,8 +49,6 @@ class TwoLinkArm:
         self.joint1 = joint1
         self.joint2 = joint2
         self.geometry = geometry
-        self._link1 = np.array([geometry.link1_length_m, geometry.link1_offset_m])
-        self._link2 = np.array([geometry.link2_length_m, geometry.link2_offset_m])
 
     @classmethod
     def from_design(cls, design: Design) -> 'TwoLinkArm':
@@ -67,17 +65,9 @@ class TwoLinkArm:
         """
         x1, y1, theta1, dx1, dy1, dtheta1 = self.joint1.components(l01_m)
         x2, y2, theta2, dx2, dy2, dtheta2 = self.joint2.components(l02_m)
-        length1, offset1 = self._link1
-        length2, offset2 = self._link2
+        x_elbow, y_elbow, x_p2, y_p2, x_end, y_end = chain_points(
+            self.geometry, x1, y1, theta1, x2, y2, theta2)
         cos1, sin1 = np.cos(theta1), np.sin(theta1)
-        theta12 = theta1 + theta2
-        cos12, sin12 = np.cos(theta12), np.sin(theta12)
-        x_elbow = x1 + cos1 * length1 - sin1 * offset1
-        y_elbow = y1 + sin1 * length1 + cos1 * offset1
-        x_p2 = x_elbow + cos1 * x2 - sin1 * y2
-        y_p2 = y_elbow + sin1 * x2 + cos1 * y2
-        x_end = x_p2 + cos12 * length2 - sin12 * offset2
-        y_end = y_p2 + sin12 * length2 + cos12 * offset2
         # A joint rotation swings everything beyond its tip about that tip.
         j11 = dx1 - dtheta1 * (y_end - y1)
         j21 = dy1 + dtheta1 * (x_end - x1)
@@ -120,6 +110,25 @@ class TwoLinkArm:
     def branch_of(end: np.ndarray, elbow: np.ndarray) -> np.ndarray:
         """+1 where the elbow is above (left of) the base-to-end line, -1 below."""
         return branch_of_components(end[..., 0], end[..., 1], elbow[..., 0], elbow[..., 1])
+
+
+def chain_points(geometry: LinkGeometry, x1, y1, theta1, x2, y2, theta2) -> Tuple[np.ndarray, ...]:
+    """
+    Points of the chain from the two flexure tip poses (each relative to its root).
+
+    :returns: ``(x_elbow, y_elbow, x_tip2, y_tip2, x_end, y_end)`` in metres, rig frame.
+    """
+    cos1, sin1 = np.cos(theta1), np.sin(theta1)
+    cos12, sin12 = np.cos(theta1 + theta2), np.sin(theta1 + theta2)
+    length1, offset1 = geometry.link1_length_m, geometry.link1_offset_m
+    length2, offset2 = geometry.link2_length_m, geometry.link2_offset_m
+    x_elbow = x1 + cos1 * length1 - sin1 * offset1
+    y_elbow = y1 + sin1 * length1 + cos1 * offset1
+    x_tip2 = x_elbow + cos1 * x2 - sin1 * y2
+    y_tip2 = y_elbow + sin1 * x2 + cos1 * y2
+    x_end = x_tip2 + cos12 * length2 - sin12 * offset2
+    y_end = y_tip2 + sin12 * length2 + cos12 * offset2
+    return x_elbow, y_elbow, x_tip2, y_tip2, x_end, y_end
 
 
 def branch_of_components(x_end, y_end, x_elbow, y_elbow) -> np.ndarray:
