@@ -1,0 +1,1 @@
+"""Simulated rig: stands in for the hardware behind the same protocols (CAN, tracker TCP)."""
