@@ -1,0 +1,589 @@
+"""
+A simulated lead-screw actuator behind a CiA 402 drive, on a python-can bus.
+
+:class:`LeadScrewActuator` is the physics alone: a motor whose speed follows the command
+with a first-order lag, a screw nut that drives the output rod through a backlash dead
+band, hard end stops, and the potentiometer that measures the rod (noise, quantisation,
+slow offset drift). :class:`SimulatedDrive` puts it behind the drive side of CiA 301 /
+CiA 402 (NMT, heartbeat, expedited SDO server, RPDO1/TPDO1, EMCY), framed with
+:mod:`flexure_ctrl.core.cia402`, so the actuator loop cannot tell it from a rig drive.
+
+Time is explicit: the owner calls :meth:`SimulatedDrive.tick` with the current time and
+the step, so tests run it deterministically and the simulator runs it in real time.
+"""
+
+from dataclasses import dataclass
+import logging
+import math
+import threading
+from typing import Callable, Dict, Optional, Tuple
+
+import can
+from flexure_ctrl.core import cia402
+from flexure_ctrl.core.errors import FlexureCtrlError
+import numpy as np
+
+_log = logging.getLogger(__name__)
+
+# Error register (0x1001) bits, CiA 301.
+ERROR_REGISTER_GENERIC = 0x01
+ERROR_REGISTER_COMMUNICATION = 0x10
+
+# SDO abort codes beyond those cia402 defines (CiA 301).
+SDO_ABORT_COMMAND_INVALID = 0x05040001
+SDO_ABORT_SUBINDEX_MISSING = 0x06090011
+
+_INT32_MIN = -(1 << 31)
+_INT32_MAX = (1 << 31) - 1
+# Bound on frames handled per tick, so a flood cannot stall the physics.
+_MAX_FRAMES_PER_TICK = 1000
+
+
+class SimulationParameterError(FlexureCtrlError, ValueError):
+    """A parameter of the simulated actuator or drive is out of its range."""
+
+
+@dataclass
+class LeadScrewParameters:
+    """
+    Physical parameters of one simulated lead-screw actuator (SI units).
+
+    :param lag_s: time constant (s) of the first-order lag from commanded to actual
+        screw velocity.
+    :param max_speed_m_s: speed limit (m/s); commands beyond it are clipped.
+    :param backlash_m: width (m) of the dead band between screw nut and rod.
+    :param pot_noise_m: standard deviation (m) of the potentiometer noise.
+    :param pot_quantum_m: potentiometer quantisation step (m); 0 for none.
+    :param drift_m_per_s: rate (m/s) of the slow drift of the potentiometer offset.
+    :param end_stop_m: hard mechanical end stops of the rod at +- this (m).
+    """
+
+    lag_s: float = 0.05
+    max_speed_m_s: float = 0.02
+    backlash_m: float = 1.0e-4
+    pot_noise_m: float = 2.0e-5
+    pot_quantum_m: float = 1.0e-6
+    drift_m_per_s: float = 0.0
+    end_stop_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        for name in ('lag_s', 'backlash_m', 'pot_noise_m', 'pot_quantum_m'):
+            if not getattr(self, name) >= 0.0:
+                raise SimulationParameterError(f'{name} must be >= 0, got {getattr(self, name)}')
+        for name in ('max_speed_m_s', 'end_stop_m'):
+            if not getattr(self, name) > 0.0:
+                raise SimulationParameterError(f'{name} must be > 0, got {getattr(self, name)}')
+        if not math.isfinite(self.drift_m_per_s):
+            raise SimulationParameterError(f'drift_m_per_s must be finite, got '
+                                           f'{self.drift_m_per_s}')
+
+
+class LeadScrewActuator:
+    """
+    Pure physics, no bus: step it with a commanded velocity.
+
+    :param parameters: the actuator's physical parameters.
+    :param rng: source of the potentiometer noise and of the drift direction; the same
+        seed gives the same readings.
+    :param initial_position_m: rod (and nut) position (m) at start, within the end stops.
+    :raises SimulationParameterError: if the initial position is beyond an end stop.
+    """
+
+    def __init__(self, parameters: LeadScrewParameters, rng: np.random.Generator,
+                 initial_position_m: float = 0.0) -> None:
+        if not abs(initial_position_m) <= parameters.end_stop_m:
+            raise SimulationParameterError(
+                f'initial position {initial_position_m} m is beyond the end stops '
+                f'(+-{parameters.end_stop_m} m)')
+        self.parameters = parameters
+        self._rng = rng
+        self._velocity_m_s = 0.0
+        self._nut_m = float(initial_position_m)
+        self._rod_m = float(initial_position_m)
+        self._offset_m = 0.0
+        self._drift_sign = 1.0 if rng.random() < 0.5 else -1.0
+
+    @property
+    def rod_position_m(self) -> float:
+        """Return the true rod (output) position (m): what the flexure linkage sees."""
+        return self._rod_m
+
+    @property
+    def nut_position_m(self) -> float:
+        """Position (m) of the screw nut, which drives the rod through the backlash."""
+        return self._nut_m
+
+    @property
+    def velocity_m_s(self) -> float:
+        """Return the current actual velocity (m/s) of the screw (nut)."""
+        return self._velocity_m_s
+
+    @property
+    def pot_offset_m(self) -> float:
+        """Return the current offset (m) of the potentiometer reading, from the drift."""
+        return self._offset_m
+
+    @property
+    def end_stop_contact(self) -> int:
+        """+1 or -1 while the rod rests on the upper or lower end stop, else 0."""
+        if self._rod_m >= self.parameters.end_stop_m:
+            return 1
+        if self._rod_m <= -self.parameters.end_stop_m:
+            return -1
+        return 0
+
+    def step(self, commanded_velocity_m_s: float, dt_s: float,
+             deceleration_m_s2: Optional[float] = None) -> None:
+        """
+        Advance the actuator by ``dt_s`` (s) with a constant velocity command (m/s).
+
+        The command is clipped to the speed limit. The screw velocity follows it with the
+        first-order lag, integrated exactly over the step (velocity and travel), or, when
+        ``deceleration_m_s2`` is given (a quick stop), ramps towards it at that constant
+        rate (m/s^2). The nut drives the rod through the backlash band; at an end stop the
+        rod stops, the nut stalls against it and the screw velocity drops to zero.
+
+        :raises SimulationParameterError: if ``dt_s`` is negative.
+        """
+        if dt_s < 0.0:
+            raise SimulationParameterError(f'time step must be >= 0, got {dt_s} s')
+        limit = self.parameters.max_speed_m_s
+        target = min(max(float(commanded_velocity_m_s), -limit), limit)
+        start = self._velocity_m_s
+        if deceleration_m_s2 is None:
+            lag = self.parameters.lag_s
+            if lag > 0.0:
+                remaining = math.exp(-dt_s / lag)
+                end = target + (start - target) * remaining
+                travel = target * dt_s + (start - target) * lag * (1.0 - remaining)
+            else:
+                end, travel = target, target * dt_s
+        else:
+            change = target - start
+            if abs(change) <= deceleration_m_s2 * dt_s:
+                ramp_s = abs(change) / deceleration_m_s2 if deceleration_m_s2 > 0.0 else 0.0
+                end = target
+                travel = 0.5 * (start + target) * ramp_s + target * (dt_s - ramp_s)
+            else:
+                end = start + math.copysign(deceleration_m_s2 * dt_s, change)
+                travel = 0.5 * (start + end) * dt_s
+        self._velocity_m_s = end
+        self._nut_m += travel
+        self._follow_nut()
+        self._offset_m += self._drift_sign * self.parameters.drift_m_per_s * dt_s
+
+    def _follow_nut(self) -> None:
+        half_band = 0.5 * self.parameters.backlash_m
+        # The rod moves only when the nut pushes it at an edge of the dead band.
+        if self._nut_m - self._rod_m > half_band:
+            self._rod_m = self._nut_m - half_band
+        elif self._nut_m - self._rod_m < -half_band:
+            self._rod_m = self._nut_m + half_band
+        stop = self.parameters.end_stop_m
+        if self._rod_m > stop:
+            self._rod_m = stop
+            self._nut_m = stop + half_band
+            self._velocity_m_s = min(self._velocity_m_s, 0.0)
+        elif self._rod_m < -stop:
+            self._rod_m = -stop
+            self._nut_m = -stop - half_band
+            self._velocity_m_s = max(self._velocity_m_s, 0.0)
+
+    def pot_reading_m(self) -> float:
+        """
+        Read the potentiometer (m): rod position plus drift offset plus noise, quantised.
+
+        Each call draws new noise.
+        """
+        value = self._rod_m + self._offset_m
+        if self.parameters.pot_noise_m > 0.0:
+            value += self._rng.normal(0.0, self.parameters.pot_noise_m)
+        quantum = self.parameters.pot_quantum_m
+        if quantum > 0.0:
+            value = round(value / quantum) * quantum
+        return float(value)
+
+
+class SimulatedDrive:
+    """
+    CiA 402 slave on a python-can bus, driving a :class:`LeadScrewActuator`.
+
+    In the simulator the bus is a virtual bus on the socketcand server's virtual
+    channel. The drive does not own the bus: :meth:`shutdown` leaves it open.
+
+    On creation it sends its boot-up heartbeat and is PRE-OPERATIONAL, in
+    SWITCH ON DISABLED with no mode of operation; a master starts it (NMT), writes mode
+    3 (profile velocity, SDO 0x6060) and walks the controlword to OPERATION ENABLED.
+    RPDO1 carries controlword and target velocity (counts/s); each RPDO is answered at
+    once with TPDO1 (statusword, potentiometer position in counts), which is also sent
+    every ``tpdo_period_s`` while OPERATIONAL. Heartbeats carry the NMT state.
+    Missing RPDOs for ``rpdo_timeout_s`` in OPERATION ENABLED cause a quick stop and an
+    EMCY 0x8250. When the error register returns to zero (fault reset, or leaving
+    QUICK STOP ACTIVE after an RPDO timeout) the drive sends EMCY 0x0000.
+
+    Thread safety: :meth:`tick`, :meth:`inject_fault` and :meth:`shutdown` may be called
+    from different threads.
+
+    :param bus: bus the drive sends on and receives from.
+    :param node_id: CANopen node id, 1 to 127.
+    :param actuator: the physics behind the drive.
+    :param counts_per_m: position and velocity scale on the wire (counts per m).
+    :param heartbeat_period_s: heartbeat producer period (s); 0 disables heartbeats.
+    :param rpdo_timeout_s: RPDO watchdog (s) in OPERATION ENABLED; 0 disables it.
+    :param tpdo_period_s: event timer (s) of TPDO1 while OPERATIONAL; 0 disables it.
+    :param quick_stop_decel_m_s2: deceleration (m/s^2) of a quick stop.
+    :raises SimulationParameterError: if a parameter is out of range.
+    """
+
+    def __init__(self, bus: can.BusABC, node_id: int, actuator: LeadScrewActuator,
+                 counts_per_m: float = 1e6, heartbeat_period_s: float = 0.1,
+                 rpdo_timeout_s: float = 0.1, tpdo_period_s: float = 0.01,
+                 quick_stop_decel_m_s2: float = 0.5) -> None:
+        if not 1 <= node_id <= 127:
+            raise SimulationParameterError(f'node id must be 1 to 127, got {node_id}')
+        if not counts_per_m > 0.0:
+            raise SimulationParameterError(f'counts_per_m must be > 0, got {counts_per_m}')
+        if not 0.0 <= heartbeat_period_s <= 65.535:
+            raise SimulationParameterError(
+                f'heartbeat period must be 0 to 65.535 s, got {heartbeat_period_s}')
+        for name, value in (('rpdo_timeout_s', rpdo_timeout_s),
+                            ('tpdo_period_s', tpdo_period_s)):
+            if not value >= 0.0:
+                raise SimulationParameterError(f'{name} must be >= 0, got {value}')
+        if not quick_stop_decel_m_s2 > 0.0:
+            raise SimulationParameterError(
+                f'quick stop deceleration must be > 0, got {quick_stop_decel_m_s2}')
+        self._bus = bus
+        self.node_id = node_id
+        self.actuator = actuator
+        self.counts_per_m = float(counts_per_m)
+        self.rpdo_timeout_s = float(rpdo_timeout_s)
+        self.tpdo_period_s = float(tpdo_period_s)
+        self.quick_stop_decel_m_s2 = float(quick_stop_decel_m_s2)
+        self._default_heartbeat_ms = int(round(heartbeat_period_s * 1000.0))
+        self._heartbeat_ms = self._default_heartbeat_ms
+        self._heartbeat_id = cia402.HEARTBEAT_BASE + node_id
+        self._emcy_id = cia402.EMCY_BASE + node_id
+        self._tpdo_id = cia402.TPDO1_BASE + node_id
+        self._rpdo_id = cia402.RPDO1_BASE + node_id
+        self._sdo_request_id = cia402.SDO_CLIENT_TO_SERVER_BASE + node_id
+        self._sdo_response_id = cia402.SDO_SERVER_TO_CLIENT_BASE + node_id
+        # index -> (size in bytes, read, write or None); write returns an abort code or 0.
+        self._objects: Dict[int, Tuple[int, Callable[[], int],
+                                       Optional[Callable[[int, int], int]]]] = {
+            cia402.ERROR_REGISTER: (1, lambda: self.error_register, None),
+            cia402.HEARTBEAT_PRODUCER_TIME: (2, lambda: self._heartbeat_ms,
+                                             self._write_heartbeat_time),
+            cia402.CONTROLWORD: (2, lambda: self._controlword, self._write_controlword),
+            cia402.STATUSWORD: (2, lambda: self.statusword, None),
+            cia402.MODES_OF_OPERATION: (1, lambda: self.mode_of_operation,
+                                        self._write_mode_of_operation),
+            cia402.MODES_OF_OPERATION_DISPLAY: (1, lambda: self.mode_of_operation, None),
+            cia402.POSITION_ACTUAL_VALUE: (4, self._position_counts, None),
+        }
+        self._lock = threading.RLock()
+        self._closed = False
+        self._now_s: Optional[float] = None
+        self._next_heartbeat_s: Optional[float] = None
+        self._next_tpdo_s: Optional[float] = None
+        self._last_rpdo_s: Optional[float] = None
+        self._fault_active = False
+        self._communication_error = False
+        self._controlword = 0
+        self._target_velocity_counts_s = 0
+        self.state = cia402.DriveState.SWITCH_ON_DISABLED
+        self.mode_of_operation = 0
+        self.nmt_state = cia402.NmtState.BOOT_UP
+        self._boot()
+
+    # Public state ---------------------------------------------------------------------
+
+    @property
+    def statusword(self) -> int:
+        """Statusword (0x6041): the state's coding, remote (bit 9), internal limit (bit 11)."""
+        word = cia402.STATUSWORD_OF_STATE[self.state] | cia402.SW_REMOTE
+        if self.actuator.end_stop_contact:
+            word |= cia402.SW_INTERNAL_LIMIT
+        return word
+
+    @property
+    def error_register(self) -> int:
+        """Error register (0x1001): bit 0 on any error, bit 4 after an RPDO timeout."""
+        register = 0
+        if self._fault_active or self._communication_error:
+            register |= ERROR_REGISTER_GENERIC
+        if self._communication_error:
+            register |= ERROR_REGISTER_COMMUNICATION
+        return register
+
+    @property
+    def heartbeat_period_s(self) -> float:
+        """Heartbeat producer period (s), as set by 0x1017; 0 when disabled."""
+        return self._heartbeat_ms / 1000.0
+
+    # Driving the simulation -------------------------------------------------------------
+
+    def tick(self, now_s: float, dt_s: float) -> None:
+        """
+        Advance the drive to time ``now_s`` (s, any monotonic clock) by a step ``dt_s`` (s).
+
+        Handles the frames received since the last tick (without blocking), checks the
+        RPDO watchdog, steps the physics with the resulting velocity command and sends
+        the heartbeat and event-timer TPDO when due. Does nothing after shutdown.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._now_s = now_s
+            for _ in range(_MAX_FRAMES_PER_TICK):
+                message = self._bus.recv(timeout=0.0)
+                if message is None:
+                    break
+                self._handle(message, now_s)
+            self._check_rpdo_timeout(now_s)
+            self._step_physics(dt_s)
+            self._send_periodic(now_s)
+
+    def inject_fault(self, error_code: int = cia402.EMCY_GENERIC) -> None:
+        """Enter FAULT (velocity command 0) and send an EMCY with ``error_code``."""
+        with self._lock:
+            if self._closed:
+                return
+            self._fault_active = True
+            self._enter_state(cia402.DriveState.FAULT)
+            self._send_emcy(error_code)
+
+    def shutdown(self) -> None:
+        """Stop acting on the bus (later ticks do nothing); idempotent. The bus stays open."""
+        with self._lock:
+            self._closed = True
+
+    def __enter__(self) -> 'SimulatedDrive':
+        return self
+
+    def __exit__(self, exc_type, exc_value, traceback) -> None:
+        self.shutdown()
+
+    # Frame handling ---------------------------------------------------------------------
+
+    def _handle(self, message: can.Message, now_s: float) -> None:
+        if message.is_extended_id or message.is_error_frame or message.is_remote_frame:
+            return
+        cob_id = message.arbitration_id
+        data = bytes(message.data)
+        if cob_id == cia402.NMT_COB_ID:
+            self._handle_nmt(data)
+        elif self.nmt_state is cia402.NmtState.STOPPED:
+            return  # only NMT and heartbeat work in STOPPED
+        elif cob_id == self._sdo_request_id:
+            self._handle_sdo(data)
+        elif cob_id == self._rpdo_id and self.nmt_state is cia402.NmtState.OPERATIONAL:
+            self._handle_rpdo(data, now_s)
+
+    def _handle_nmt(self, data: bytes) -> None:
+        try:
+            command, node = cia402.decode_nmt(data)
+        except ValueError:  # CanOpenError, or an unknown command specifier
+            _log.debug('node %d: ignored NMT frame %s', self.node_id, data.hex())
+            return
+        if node not in (0, self.node_id):
+            return
+        if command is cia402.NmtCommand.START:
+            self.nmt_state = cia402.NmtState.OPERATIONAL
+        elif command is cia402.NmtCommand.STOP:
+            self.nmt_state = cia402.NmtState.STOPPED
+        elif command is cia402.NmtCommand.ENTER_PRE_OPERATIONAL:
+            self.nmt_state = cia402.NmtState.PRE_OPERATIONAL
+        elif command is cia402.NmtCommand.RESET_NODE:
+            self._reset_application()
+            self._reset_communication()
+            self._boot()
+        elif command is cia402.NmtCommand.RESET_COMMUNICATION:
+            self._reset_communication()
+            self._boot()
+
+    def _handle_rpdo(self, data: bytes, now_s: float) -> None:
+        try:
+            controlword, target_velocity = cia402.decode_pdo(data)
+        except cia402.CanOpenError as error:
+            _log.debug('node %d: ignored RPDO: %s', self.node_id, error)
+            return
+        self._last_rpdo_s = now_s
+        self._apply_controlword(controlword)
+        # A target only counts while enabled, so re-enabling later never jumps to a
+        # stale velocity.
+        enabled = self.state is cia402.DriveState.OPERATION_ENABLED
+        self._target_velocity_counts_s = target_velocity if enabled else 0
+        self._send_tpdo()
+
+    def _handle_sdo(self, data: bytes) -> None:
+        try:
+            request = cia402.decode_sdo(data, from_server=False)
+        except cia402.CanOpenError:
+            if len(data) == 8:
+                self._send_sdo(cia402.Sdo('abort', int.from_bytes(data[1:3], 'little'),
+                                          data[3], SDO_ABORT_COMMAND_INVALID))
+            return
+        if request.kind == 'abort':
+            return
+        entry = self._objects.get(request.index)
+        if entry is None:
+            abort = cia402.SDO_ABORT_OBJECT_MISSING
+        elif request.subindex != 0:
+            abort = SDO_ABORT_SUBINDEX_MISSING
+        elif request.kind == 'upload':
+            size, read, _ = entry
+            value = read() & ((1 << (8 * size)) - 1)
+            self._send_sdo(cia402.Sdo('upload_ok', request.index, 0, value, size))
+            return
+        elif entry[2] is None:
+            abort = cia402.SDO_ABORT_READ_ONLY
+        else:
+            abort = entry[2](request.value, request.size)
+            if not abort:
+                self._send_sdo(cia402.Sdo('download_ok', request.index, 0))
+                return
+        self._send_sdo(cia402.Sdo('abort', request.index, request.subindex, abort))
+
+    def _write_mode_of_operation(self, value: int, size: int) -> int:
+        if cia402.signed(value, size) != cia402.PROFILE_VELOCITY_MODE:
+            return cia402.SDO_ABORT_VALUE_RANGE
+        self.mode_of_operation = cia402.PROFILE_VELOCITY_MODE
+        return 0
+
+    def _write_heartbeat_time(self, value: int, size: int) -> int:
+        if value > 0xFFFF:
+            return cia402.SDO_ABORT_VALUE_RANGE
+        self._heartbeat_ms = value
+        self._next_heartbeat_s = None  # restart the period from the next tick
+        return 0
+
+    def _write_controlword(self, value: int, size: int) -> int:
+        if value > 0xFFFF:
+            return cia402.SDO_ABORT_VALUE_RANGE
+        self._apply_controlword(value)
+        if self.state is not cia402.DriveState.OPERATION_ENABLED:
+            self._target_velocity_counts_s = 0
+        return 0
+
+    # CiA 402 state machine ------------------------------------------------------------
+
+    def _apply_controlword(self, controlword: int) -> None:
+        new_state = cia402.apply_controlword(self.state, controlword, self._controlword)
+        self._controlword = controlword
+        self._enter_state(new_state)
+
+    def _enter_state(self, new_state: cia402.DriveState) -> None:
+        old_state = self.state
+        if new_state is old_state:
+            return
+        self.state = new_state
+        if new_state is cia402.DriveState.OPERATION_ENABLED:
+            self._last_rpdo_s = self._now_s  # the watchdog starts on enabling
+        else:
+            self._target_velocity_counts_s = 0
+        if old_state is cia402.DriveState.FAULT:
+            self._clear_errors(fault=True, communication=True)
+        elif old_state is cia402.DriveState.QUICK_STOP_ACTIVE and \
+                new_state is not cia402.DriveState.FAULT:
+            self._clear_errors(fault=False, communication=True)
+
+    def _clear_errors(self, fault: bool, communication: bool) -> None:
+        had_errors = self.error_register != 0
+        if fault:
+            self._fault_active = False
+        if communication:
+            self._communication_error = False
+        if had_errors and self.error_register == 0:
+            self._send_emcy(cia402.EMCY_NO_ERROR)
+
+    def _check_rpdo_timeout(self, now_s: float) -> None:
+        if (self.state is cia402.DriveState.OPERATION_ENABLED and self.rpdo_timeout_s > 0.0
+                and self._last_rpdo_s is not None
+                and now_s - self._last_rpdo_s > self.rpdo_timeout_s):
+            _log.warning('node %d: no RPDO for %.3f s: quick stop', self.node_id,
+                         now_s - self._last_rpdo_s)
+            self._enter_state(cia402.DriveState.QUICK_STOP_ACTIVE)
+            self._communication_error = True
+            self._send_emcy(cia402.EMCY_RPDO_TIMEOUT)
+
+    def _step_physics(self, dt_s: float) -> None:
+        deceleration = None
+        velocity = 0.0
+        if self.state is cia402.DriveState.QUICK_STOP_ACTIVE:
+            deceleration = self.quick_stop_decel_m_s2
+        elif (self.state is cia402.DriveState.OPERATION_ENABLED
+              and self.mode_of_operation == cia402.PROFILE_VELOCITY_MODE):
+            velocity = self._target_velocity_counts_s / self.counts_per_m
+        self.actuator.step(velocity, dt_s, deceleration_m_s2=deceleration)
+
+    # NMT life cycle ---------------------------------------------------------------------
+
+    def _boot(self) -> None:
+        self.nmt_state = cia402.NmtState.BOOT_UP
+        self._send(self._heartbeat_id, cia402.encode_heartbeat(cia402.NmtState.BOOT_UP))
+        self.nmt_state = cia402.NmtState.PRE_OPERATIONAL
+        self._next_heartbeat_s = None
+        self._next_tpdo_s = None
+
+    def _reset_application(self) -> None:
+        self._fault_active = False
+        self._communication_error = False
+        self._controlword = 0
+        self._target_velocity_counts_s = 0
+        self._last_rpdo_s = None
+        self.state = cia402.DriveState.SWITCH_ON_DISABLED
+        self.mode_of_operation = 0
+
+    def _reset_communication(self) -> None:
+        self._heartbeat_ms = self._default_heartbeat_ms
+
+    # Sending ----------------------------------------------------------------------------
+
+    def _send_periodic(self, now_s: float) -> None:
+        if self._heartbeat_ms > 0:
+            self._next_heartbeat_s = self._due(self._next_heartbeat_s, now_s,
+                                               self._heartbeat_ms / 1000.0, self._send_heartbeat)
+        if self.nmt_state is cia402.NmtState.OPERATIONAL and self.tpdo_period_s > 0.0:
+            self._next_tpdo_s = self._due(self._next_tpdo_s, now_s, self.tpdo_period_s,
+                                          self._send_tpdo)
+        else:
+            self._next_tpdo_s = None
+
+    @staticmethod
+    def _due(next_s: Optional[float], now_s: float, period_s: float,
+             send: Callable[[], None]) -> float:
+        """Send if due; return the next due time (no burst of catch-up frames)."""
+        if next_s is None:
+            return now_s + period_s
+        if now_s < next_s:
+            return next_s
+        send()
+        next_s += period_s
+        return next_s if next_s > now_s else now_s + period_s
+
+    def _send_heartbeat(self) -> None:
+        self._send(self._heartbeat_id, cia402.encode_heartbeat(self.nmt_state))
+
+    def _position_counts(self) -> int:
+        counts = int(round(self.actuator.pot_reading_m() * self.counts_per_m))
+        return min(max(counts, _INT32_MIN), _INT32_MAX)
+
+    def _send_tpdo(self) -> None:
+        self._send(self._tpdo_id, cia402.encode_pdo(self.statusword, self._position_counts()))
+
+    def _send_emcy(self, error_code: int) -> None:
+        # CiA 301: no EMCY in STOPPED.
+        if self.nmt_state is not cia402.NmtState.STOPPED:
+            self._send(self._emcy_id, cia402.encode_emcy(
+                cia402.Emergency(error_code, self.error_register)))
+
+    def _send_sdo(self, sdo: cia402.Sdo) -> None:
+        self._send(self._sdo_response_id, cia402.encode_sdo(sdo))
+
+    def _send(self, cob_id: int, data: bytes) -> None:
+        try:
+            self._bus.send(can.Message(arbitration_id=cob_id, data=data,
+                                       is_extended_id=False))
+        except can.CanError as error:
+            _log.warning('node %d: could not send 0x%03X: %s', self.node_id, cob_id, error)

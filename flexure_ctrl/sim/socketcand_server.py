@@ -1,0 +1,455 @@
+"""
+A socketcand-protocol server on loopback: the simulated rig's CAN bus.
+
+The rig's nodes reach the drives through python-can; between processes, without
+SocketCAN, they use python-can's ``socketcand`` client interface::
+
+    can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0')
+
+This server speaks the socketcand ASCII protocol that client expects (raw mode only)
+and bridges every TCP client to its own python-can ``virtual`` bus on one in-process
+channel. So it is a software CAN bus: a frame one client sends reaches every other
+client and every in-process virtual bus on that channel (the simulated drives live
+there), and frames the in-process buses send reach every client. As on SocketCAN with
+default socket options, no client receives its own frames back.
+
+Protocol (server ``->`` client, one command per ``< ... >``)::
+
+    -> < hi >
+    <- < open can0 >        -> < ok >   (any other bus name: < error could not open bus >)
+    <- < rawmode >          -> < ok >
+    -> < frame 123 1700000000.123456 0F0018FCFFFF >   (id: 3 hex digits, 8 if extended)
+    -> < error 00000004 1700000000.123456 >           (an error frame, id = error class)
+    <- < send 123 6 f 0 18 fc ff ff >                 (length and bytes in hex)
+    <- < echo >             -> < echo >
+
+The python-can client checks each handshake answer with a single ``recv`` and would
+fail if a frame were glued to the last ``< ok >``. So frames reach a new client only
+once it has sent its first command after raw mode, or after a short grace period
+(``handshake_grace_s``), whichever comes first; frames on the bus meanwhile are queued,
+not lost.
+
+A client that sends anything else (bad syntax, unknown commands, a DLC above 8, non
+ASCII) or stops reading for ``io_timeout_s`` is logged and dropped; the others carry on.
+"""
+
+import ipaddress
+import logging
+import select
+import socket
+import string
+import threading
+from typing import List, Optional, Set, Tuple
+
+import can
+from flexure_ctrl.core.errors import FlexureCtrlError
+
+_log = logging.getLogger(__name__)
+
+_HEX_DIGITS = frozenset(string.hexdigits)
+_TCP_QUICKACK = getattr(socket, 'TCP_QUICKACK', None)  # Linux only
+# Longest well-formed command: '< send 1FFFFFFF 8 ff ff ff ff ff ff ff ff >' is 42 bytes.
+_MAX_COMMAND_BYTES = 256
+_RECV_BYTES = 65536
+# Wake-up period of the accept and writer loops so that shutdown() is prompt.
+_POLL_S = 0.05
+# Frames waiting are joined into one TCP write (fewer system calls) up to this size: the
+# python-can client reads 1024 bytes at a time and logs a warning for every frame cut.
+_MAX_WRITE_CHARS = 960
+
+
+class SocketcandServerError(FlexureCtrlError):
+    """Base class of the errors raised by :class:`SocketcandServer`."""
+
+
+class NonLoopbackHostError(SocketcandServerError, ValueError):
+    """The server was asked to listen on an address outside the loopback range."""
+
+
+class SocketcandServerStateError(SocketcandServerError, RuntimeError):
+    """The server is used before :meth:`SocketcandServer.start` or after shutdown."""
+
+
+class SocketcandProtocolError(SocketcandServerError):
+    """A client sent something that is not valid socketcand (raw mode); it is dropped."""
+
+
+def _loopback_address(host: str) -> Tuple[int, str]:
+    """
+    Socket family and literal address of a loopback ``host``.
+
+    :raises NonLoopbackHostError: if ``host`` is not ``localhost`` or a loopback IP.
+    """
+    literal = '127.0.0.1' if host == 'localhost' else host
+    try:
+        address = ipaddress.ip_address(literal)
+    except ValueError:
+        raise NonLoopbackHostError(
+            f'socketcand server host must be a loopback address, not {host!r}') from None
+    if not address.is_loopback:
+        raise NonLoopbackHostError(
+            f'socketcand server host must be a loopback address, not {host!r}')
+    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
+    return family, str(address)
+
+
+def _timestamp_text(timestamp_s: float) -> str:
+    """``<secs>.<usecs>`` as socketcand prints a frame time (s since the epoch)."""
+    seconds, microseconds = divmod(int(round(timestamp_s * 1e6)), 1_000_000)
+    return f'{seconds}.{microseconds:06d}'
+
+
+def format_frame(message: can.Message) -> str:
+    """
+    Render a frame as socketcand's raw-mode ``< frame ... >`` (or ``< error ... >``).
+
+    Standard ids take three hex digits and extended ids eight: the python-can client
+    tells them apart by that width. A frame without data keeps socketcand's empty data
+    field (two spaces before ``>``), which the client needs. Remote frames go out with
+    no data (the protocol has no RTR flag). CAN FD frames cannot be represented and give
+    an empty string.
+    """
+    if message.is_extended_id:
+        can_id = f'{message.arbitration_id & 0x1FFFFFFF:08X}'
+    else:
+        can_id = f'{message.arbitration_id & 0x7FF:03X}'
+    timestamp = _timestamp_text(message.timestamp)
+    if message.is_error_frame:
+        return f'< error {message.arbitration_id & 0x1FFFFFFF:08X} {timestamp} >'
+    if message.is_fd:
+        return ''
+    data = b'' if message.is_remote_frame else bytes(message.data[:message.dlc])
+    return f'< frame {can_id} {timestamp} {data.hex().upper()} >'
+
+
+def _hex_field(text: str, max_digits: int, what: str) -> int:
+    if not 1 <= len(text) <= max_digits or not _HEX_DIGITS.issuperset(text):
+        raise SocketcandProtocolError(f'{what} {text!r} is not 1 to {max_digits} hex digits')
+    return int(text, 16)
+
+
+def parse_send(tokens: List[str]) -> can.Message:
+    """
+    Frame of a raw-mode ``< send <id> <len> <byte> ... >`` command, split into tokens.
+
+    As in socketcand, an id written with eight digits is extended, one with at most
+    three is standard; length and bytes are hex.
+
+    :raises SocketcandProtocolError: if the command is malformed.
+    """
+    if len(tokens) < 3 or tokens[0] != 'send':
+        raise SocketcandProtocolError(f'not a send command: {" ".join(tokens)!r}')
+    id_text, length_text, byte_texts = tokens[1], tokens[2], tokens[3:]
+    extended = len(id_text) == 8
+    can_id = _hex_field(id_text, 8 if extended else 3, 'CAN id')
+    if can_id > (0x1FFFFFFF if extended else 0x7FF):
+        raise SocketcandProtocolError(f'CAN id {id_text!r} out of range')
+    length = _hex_field(length_text, 2, 'data length')
+    if length > 8 or len(byte_texts) != length:
+        raise SocketcandProtocolError(
+            f'data length {length_text!r} with {len(byte_texts)} data bytes')
+    data = bytes(_hex_field(text, 2, 'data byte') for text in byte_texts)
+    return can.Message(arbitration_id=can_id, is_extended_id=extended, data=data,
+                       dlc=length)
+
+
+class _ClientConnection:
+    """One TCP client, bridged to its own virtual bus by a reader and a writer thread."""
+
+    def __init__(self, server: 'SocketcandServer', sock: socket.socket, peer: str) -> None:
+        self._server = server
+        self._sock = sock
+        self.peer = peer
+        self._buffer = bytearray()
+        self._stopping = threading.Event()
+        # Set once the client has surely read the handshake's last '< ok >'.
+        self._may_forward = threading.Event()
+        self._bus: Optional[can.BusABC] = None
+        self._writer: Optional[threading.Thread] = None
+        self._reader = threading.Thread(target=self._run_reader, daemon=True,
+                                        name=f'socketcand-reader-{peer}')
+
+    def start(self) -> None:
+        self._reader.start()
+
+    def stop(self) -> None:
+        """Ask both threads to end: wakes the reader's recv and the writer's send."""
+        self._stopping.set()
+        self._may_forward.set()
+        try:
+            self._sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass  # already disconnected
+
+    def join(self, timeout_s: float) -> None:
+        self._reader.join(timeout_s)
+        if self._reader.is_alive():
+            _log.error('socketcand client %s: reader thread did not end', self.peer)
+
+    def _send_text(self, text: str) -> None:
+        self._sock.sendall(text.encode('ascii'))
+
+    def _read_commands(self) -> List[List[str]]:
+        """Block for data; return the complete ``< ... >`` commands received, as tokens."""
+        chunk = self._sock.recv(_RECV_BYTES)
+        if not chunk:
+            raise ConnectionResetError('client closed the connection')
+        if _TCP_QUICKACK is not None:
+            # Acknowledge at once (Linux re-arms delayed ACKs after every read): a client
+            # without TCP_NODELAY (python-can's default) would otherwise hold its next
+            # frame in Nagle's algorithm until our delayed ACK, up to 40 ms.
+            self._sock.setsockopt(socket.IPPROTO_TCP, _TCP_QUICKACK, 1)
+        self._buffer += chunk
+        commands = []
+        while True:
+            end = self._buffer.find(b'>')
+            if end < 0:
+                if len(self._buffer) > _MAX_COMMAND_BYTES:
+                    raise SocketcandProtocolError('no closing ">" within 256 bytes')
+                return commands
+            raw = bytes(self._buffer[:end + 1]).strip()
+            del self._buffer[:end + 1]
+            if not raw.startswith(b'<') or b'<' in raw[1:]:
+                raise SocketcandProtocolError(f'bad command framing: {raw[:64]!r}')
+            try:
+                commands.append(raw[1:-1].decode('ascii').split())
+            except UnicodeDecodeError:
+                raise SocketcandProtocolError(f'non-ASCII command: {raw[:64]!r}') from None
+
+    def _run_reader(self) -> None:
+        try:
+            self._handshake()
+            self._relay_from_client()
+        except SocketcandProtocolError as error:
+            _log.warning('socketcand client %s dropped: %s', self.peer, error)
+        except TimeoutError:
+            _log.warning('socketcand client %s dropped: handshake timed out', self.peer)
+        except OSError as error:
+            if not self._stopping.is_set():
+                _log.info('socketcand client %s disconnected: %s', self.peer, error)
+        except can.CanError as error:
+            _log.error('socketcand client %s: virtual bus failed: %s', self.peer, error)
+        finally:
+            self._close()
+
+    def _handshake(self) -> None:
+        """``< hi >``, ``< open >``, ``< rawmode >``; leaves the writer running."""
+        self._sock.settimeout(self._server.io_timeout_s)
+        self._send_text('< hi >')
+        opened = False
+        while self._writer is None:
+            for tokens in self._read_commands():
+                if self._writer is not None:
+                    self._handle_raw_command(tokens)
+                elif not opened and tokens[:1] == ['open'] and len(tokens) == 2:
+                    if tokens[1] != self._server.channel:
+                        self._send_text('< error could not open bus >')
+                        raise SocketcandProtocolError(f'no bus named {tokens[1]!r}')
+                    opened = True
+                    self._send_text('< ok >')
+                elif opened and tokens == ['rawmode']:
+                    # Join the bus before saying ok: every frame sent after the client
+                    # returns from its constructor must reach it.
+                    self._bus = can.Bus(interface='virtual',
+                                        channel=self._server.virtual_channel)
+                    self._send_text('< ok >')
+                    self._writer = threading.Thread(
+                        target=self._run_writer, daemon=True,
+                        name=f'socketcand-writer-{self.peer}')
+                    self._writer.start()
+                else:
+                    raise SocketcandProtocolError(
+                        f'unexpected handshake command {" ".join(tokens)!r}')
+
+    def _relay_from_client(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                commands = self._read_commands()
+            except TimeoutError:
+                continue  # a quiet client is fine; the timeout only bounds sends
+            for tokens in commands:
+                self._handle_raw_command(tokens)
+
+    def _handle_raw_command(self, tokens: List[str]) -> None:
+        # Any command after raw mode proves the client has read the last '< ok >'.
+        self._may_forward.set()
+        if tokens[:1] == ['send']:
+            self._bus.send(parse_send(tokens))
+        elif tokens == ['echo']:
+            self._send_text('< echo >')
+        else:
+            raise SocketcandProtocolError(f'unsupported command {" ".join(tokens)!r}')
+
+    def _run_writer(self) -> None:
+        self._may_forward.wait(self._server.handshake_grace_s)
+        bus = self._bus
+        try:
+            while not self._stopping.is_set():
+                message = bus.recv(timeout=_POLL_S)
+                if message is None:
+                    continue
+                text = format_frame(message)
+                while len(text) < _MAX_WRITE_CHARS:
+                    message = bus.recv(timeout=0.0)
+                    if message is None:
+                        break
+                    text += format_frame(message)
+                self._send_text(text)
+        except TimeoutError:
+            _log.warning('socketcand client %s dropped: not reading for %.1f s',
+                         self.peer, self._server.io_timeout_s)
+        except OSError as error:
+            if not self._stopping.is_set():
+                _log.info('socketcand client %s: send failed: %s', self.peer, error)
+        finally:
+            self.stop()  # a dead writer must take the reader (and the client) down too
+
+    def _close(self) -> None:
+        """Run by the reader when it ends: stop the writer, release bus and socket."""
+        self.stop()
+        if self._writer is not None:
+            self._writer.join()
+        if self._bus is not None:
+            self._bus.shutdown()
+        self._sock.close()
+        self._server._forget(self)
+
+
+class SocketcandServer:
+    """
+    A software CAN bus reachable with python-can's ``socketcand`` interface.
+
+    Each connected client is bridged to its own ``virtual`` bus on ``virtual_channel``;
+    in-process ``can.Bus(interface='virtual', channel=virtual_channel)`` instances share
+    the bus with the clients.
+
+    :param virtual_channel: channel of the in-process python-can virtual bus.
+    :param channel: bus name clients open (``< open can0 >``).
+    :param host: listening address; only loopback addresses are accepted.
+    :param port: TCP port; 0 picks a free one (see :attr:`port`).
+    :param handshake_grace_s: longest hold (s) of frames for a new client that has not
+        sent anything yet (see the module docstring).
+    :param io_timeout_s: a handshake not done, or a client not reading, for this long (s)
+        gets the client dropped.
+    :raises NonLoopbackHostError: if ``host`` is not a loopback address.
+    """
+
+    def __init__(self, virtual_channel: str, channel: str = 'can0', host: str = '127.0.0.1',
+                 port: int = 0, handshake_grace_s: float = 0.25,
+                 io_timeout_s: float = 2.0) -> None:
+        self._family, self.host = _loopback_address(host)
+        if not 0 <= port <= 65535:
+            raise ValueError(f'TCP port must be 0 to 65535, got {port}')
+        if not channel or any(c.isspace() or c in '<>' for c in channel):
+            raise ValueError(f'bus name {channel!r} cannot go into a socketcand command')
+        self.virtual_channel = virtual_channel
+        self.channel = channel
+        self.handshake_grace_s = float(handshake_grace_s)
+        self.io_timeout_s = float(io_timeout_s)
+        self._requested_port = int(port)
+        self._port: Optional[int] = None
+        self._listener: Optional[socket.socket] = None
+        self._acceptor: Optional[threading.Thread] = None
+        self._clients: Set[_ClientConnection] = set()
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._state = 'new'
+
+    def start(self) -> 'SocketcandServer':
+        """
+        Bind, listen and start accepting clients; listening when it returns.
+
+        :returns: the server itself, for chaining.
+        :raises SocketcandServerStateError: if the server was shut down.
+        :raises OSError: if the address cannot be bound (e.g. the port is in use).
+        """
+        with self._lock:
+            if self._state == 'running':
+                return self
+            if self._state == 'shut down':
+                raise SocketcandServerStateError('a shut-down server cannot be restarted')
+            listener = socket.socket(self._family, socket.SOCK_STREAM)
+            try:
+                # Lets a new server take the port at once, despite TIME_WAIT connections.
+                listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                listener.bind((self.host, self._requested_port))
+                listener.listen(16)
+            except OSError:
+                listener.close()
+                raise
+            self._listener = listener
+            self._port = listener.getsockname()[1]
+            self._acceptor = threading.Thread(target=self._run_acceptor, daemon=True,
+                                              name=f'socketcand-accept-{self._port}')
+            self._acceptor.start()
+            self._state = 'running'
+        _log.info('socketcand server for bus %r on %s:%d (virtual channel %r)',
+                  self.channel, self.host, self._port, self.virtual_channel)
+        return self
+
+    @property
+    def port(self) -> int:
+        """
+        TCP port the server listens on.
+
+        :raises SocketcandServerStateError: before :meth:`start`.
+        """
+        if self._port is None:
+            raise SocketcandServerStateError('the server has no port before start()')
+        return self._port
+
+    @property
+    def client_count(self) -> int:
+        """Return the number of connected clients (handshake done or not)."""
+        with self._lock:
+            return len(self._clients)
+
+    def shutdown(self) -> None:
+        """Close the listener and every client connection and join all threads; idempotent."""
+        with self._lock:
+            if self._state == 'shut down':
+                return
+            was_running = self._state == 'running'
+            self._state = 'shut down'
+            self._stopping.set()
+        if not was_running:
+            return
+        self._acceptor.join()
+        self._listener.close()
+        with self._lock:
+            clients = list(self._clients)
+        for client in clients:
+            client.stop()
+        for client in clients:
+            client.join(timeout_s=5.0)
+        _log.info('socketcand server on port %d shut down', self._port)
+
+    def __enter__(self) -> 'SocketcandServer':
+        return self.start()
+
+    def __exit__(self, exc_type, exc_value, traceback) -> None:
+        self.shutdown()
+
+    def _run_acceptor(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                readable, _, _ = select.select([self._listener], [], [], _POLL_S)
+                if not readable:
+                    continue
+                sock, address = self._listener.accept()
+            except OSError as error:
+                _log.warning('socketcand server: accept failed: %s', error)
+                continue
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            client = _ClientConnection(self, sock, f'{address[0]}:{address[1]}')
+            with self._lock:
+                if self._stopping.is_set():
+                    sock.close()
+                    return
+                self._clients.add(client)
+            _log.info('socketcand client %s connected', client.peer)
+            client.start()
+
+    def _forget(self, client: _ClientConnection) -> None:
+        with self._lock:
+            self._clients.discard(client)

@@ -1,0 +1,260 @@
+"""The socketcand-protocol server: python-can socketcand clients and virtual buses share a bus."""
+
+import socket
+import time
+import uuid
+
+import can
+from flexure_ctrl.sim.socketcand_server import format_frame, NonLoopbackHostError, parse_send
+from flexure_ctrl.sim.socketcand_server import SocketcandProtocolError, SocketcandServer
+import pytest
+
+TIMEOUT_S = 5.0
+
+
+@pytest.fixture
+def server():
+    with SocketcandServer(f'test_socketcand_{uuid.uuid4().hex}') as running:
+        yield running
+
+
+@pytest.fixture
+def connect(server):
+    buses = []
+
+    def make(kind='socketcand'):
+        if kind == 'socketcand':
+            bus = can.Bus(interface='socketcand', host='127.0.0.1', port=server.port,
+                          channel='can0')
+        else:
+            bus = can.Bus(interface='virtual', channel=server.virtual_channel)
+        buses.append(bus)
+        return bus
+    yield make
+    for bus in buses:
+        bus.shutdown()
+
+
+def receive(bus, count, timeout_s=TIMEOUT_S):
+    """Receive up to ``count`` frames, waiting at most ``timeout_s`` in all."""
+    frames = []
+    deadline = time.monotonic() + timeout_s
+    while len(frames) < count and time.monotonic() < deadline:
+        message = bus.recv(timeout=0.05)
+        if message is not None:
+            frames.append(message)
+    return frames
+
+
+def wait_for(condition, timeout_s=TIMEOUT_S):
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def frame_set(first_id):
+    """Make standard frames with DLC 0 to 8 and distinct data."""
+    return [can.Message(arbitration_id=first_id + dlc, is_extended_id=False,
+                        data=bytes((dlc * 16 + k) & 0xFF for k in range(dlc)))
+            for dlc in range(9)]
+
+
+def summary(messages):
+    return [(m.arbitration_id, m.is_extended_id, m.dlc, bytes(m.data)) for m in messages]
+
+
+def marker_first(bus, marker_id, timeout_s=TIMEOUT_S):
+    """Check the next frame is the marker: nothing echoed came before it."""
+    first = receive(bus, 1, timeout_s)
+    assert first and first[0].arbitration_id == marker_id, summary(first)
+
+
+class RawClient:
+    """A hand-driven TCP client, to send what python-can never would."""
+
+    def __init__(self, port, handshake=True):
+        self.sock = socket.create_connection(('127.0.0.1', port), timeout=TIMEOUT_S)
+        self.buffer = b''
+        if handshake:
+            assert self.reply() == b'< hi >'
+            self.sock.sendall(b'< open can0 >')
+            assert self.reply() == b'< ok >'
+            self.sock.sendall(b'< rawmode >')
+            assert self.reply() == b'< ok >'
+
+    def reply(self):
+        while b'>' not in self.buffer:
+            chunk = self.sock.recv(4096)
+            if not chunk:
+                raise ConnectionResetError('server closed the connection')
+            self.buffer += chunk
+        end = self.buffer.index(b'>') + 1
+        text, self.buffer = self.buffer[:end].strip(), self.buffer[end:]
+        return text
+
+    def closed_by_server(self):
+        try:
+            while True:
+                if not self.sock.recv(4096):
+                    return True
+        except ConnectionResetError:
+            return True
+        except socket.timeout:
+            return False
+
+    def close(self):
+        self.sock.close()
+
+
+def test_frames_travel_in_all_directions_without_echo(server, connect):
+    client_a, client_b, sniffer = connect(), connect(), connect()
+    in_process = connect('virtual')
+    sent = frame_set(0x100) + [can.Message(arbitration_id=0x1ABCDEF0, is_extended_id=True,
+                                           data=b'\x01\x02\x03')]
+    for message in sent:
+        client_a.send(message)
+    for bus in (client_b, in_process):
+        assert summary(receive(bus, len(sent))) == summary(sent)
+    first_marker = can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b'\xAA')
+    in_process.send(first_marker)
+    marker_first(client_a, 0x7FF)
+
+    from_b = frame_set(0x300)
+    for message in from_b:
+        client_b.send(message)
+    for bus in (client_a, in_process):
+        assert summary(receive(bus, len(from_b))) == summary(from_b)
+    second_marker = can.Message(arbitration_id=0x7FE, is_extended_id=False, data=b'')
+    in_process.send(second_marker)
+    marker_first(client_b, 0x7FF)  # B got the first marker too, then the second
+    marker_first(client_b, 0x7FE)
+
+    from_process = frame_set(0x500)
+    for message in from_process:
+        in_process.send(message)
+    for bus, expected in ((client_a, [second_marker] + from_process),
+                          (client_b, from_process)):
+        received = receive(bus, len(expected))
+        assert summary(received) == summary(expected)
+        assert all(m.is_rx and not m.is_error_frame for m in received)
+    assert receive(in_process, 1, timeout_s=0.1) == []
+    # A client that never sends sees the whole bus, in order.
+    everything = sent + [first_marker] + from_b + [second_marker] + from_process
+    assert summary(receive(sniffer, len(everything))) == summary(everything)
+
+
+def test_error_frames_reach_clients(server, connect):
+    client = connect()
+    in_process = connect('virtual')
+    # Error class 0x004: controller problems (SocketCAN's CAN_ERR_CRTL).
+    in_process.send(can.Message(arbitration_id=0x004, is_error_frame=True,
+                                is_extended_id=True))
+    received = receive(client, 1)
+    assert received and received[0].is_error_frame
+    assert received[0].arbitration_id == 0x004
+
+
+def test_garbage_and_broken_clients_are_dropped_without_harm(server, connect):
+    client_a, client_b = connect(), connect()
+    wait_for(lambda: server.client_count == 2)
+    garbage = [RawClient(server.port) for _ in range(5)]
+    garbage[0].sock.sendall(b'< send 12 >')  # no length
+    garbage[1].sock.sendall(b'< send 123 9 0 0 0 0 0 0 0 0 0 >')  # DLC above 8
+    garbage[2].sock.sendall(b'\xff\xfe< send 123 0 >')  # bytes outside a command
+    garbage[3].sock.sendall(b'< send 123 1 1ff >')  # a byte of three digits
+    garbage[4].sock.sendall(b'< bcmmode >')  # unsupported mode
+    unfinished = RawClient(server.port, handshake=False)
+    unfinished.sock.sendall(b'< rawmode >')  # raw mode before opening a bus
+    closes_mid_frame = RawClient(server.port)
+    closes_mid_frame.sock.sendall(b'< send 123 2 0')
+    closes_mid_frame.close()
+    for raw in garbage + [unfinished]:
+        assert raw.closed_by_server()
+        raw.close()
+    assert wait_for(lambda: server.client_count == 2)
+    client_a.send(can.Message(arbitration_id=0x123, is_extended_id=False, data=b'\x01'))
+    assert summary(receive(client_b, 1)) == [(0x123, False, 1, b'\x01')]
+
+
+def test_raw_client_sees_socketcand_frame_syntax_and_echo(server, connect):
+    raw = RawClient(server.port)
+    try:
+        raw.sock.sendall(b'< echo >')
+        assert raw.reply() == b'< echo >'
+        in_process = connect('virtual')
+        in_process.send(can.Message(arbitration_id=0x181, is_extended_id=False,
+                                    data=bytes.fromhex('3702e8030000')))
+        in_process.send(can.Message(arbitration_id=0x12, is_extended_id=False, data=b''))
+        first, second = raw.reply().decode(), raw.reply().decode()
+        assert first.startswith('< frame 181 ') and first.endswith(' 3702E8030000 >')
+        assert second.startswith('< frame 012 ') and second.endswith('  >')
+        seconds, microseconds = first.split()[3].split('.')
+        assert abs(int(seconds) - time.time()) < 60 and len(microseconds) == 6
+        raw.sock.sendall(b'< send 00000123 2 a b >< send 7ff 0 >')
+        assert summary(receive(in_process, 2)) == [(0x123, True, 2, b'\x0a\x0b'),
+                                                   (0x7FF, False, 0, b'')]
+    finally:
+        raw.close()
+
+
+def test_wrong_bus_name_is_refused(server):
+    with pytest.raises(can.CanError):
+        can.Bus(interface='socketcand', host='127.0.0.1', port=server.port, channel='can7')
+
+
+def test_shutdown_is_idempotent_disconnects_clients_and_frees_the_port(connect, server):
+    raw = RawClient(server.port)
+    connect()
+    port = server.port
+    server.shutdown()
+    server.shutdown()
+    assert raw.closed_by_server()
+    raw.close()
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection(('127.0.0.1', port), timeout=TIMEOUT_S).close()
+    with SocketcandServer(server.virtual_channel, port=port) as again:
+        assert again.port == port
+        bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0')
+        bus.shutdown()
+
+
+@pytest.mark.parametrize('host', ['0.0.0.0', '', '192.168.1.10', '10.0.0.1', '::',
+                                  'example.com'])
+def test_non_loopback_hosts_are_refused(host):
+    with pytest.raises(ValueError):
+        SocketcandServer('unused', host=host)
+    with pytest.raises(NonLoopbackHostError):
+        SocketcandServer('unused', host=host)
+
+
+@pytest.mark.parametrize('host', ['127.0.0.1', 'localhost', '127.0.0.2', '::1'])
+def test_loopback_hosts_are_accepted(host):
+    SocketcandServer('unused', host=host).shutdown()  # never started: nothing to close
+
+
+def test_format_and_parse_match_socketcand():
+    message = can.Message(timestamp=1.5, arbitration_id=0x1F, is_extended_id=False,
+                          data=b'\x0f\x00')
+    assert format_frame(message) == '< frame 01F 1.500000 0F00 >'
+    extended = can.Message(timestamp=2.0, arbitration_id=0x1F, is_extended_id=True)
+    assert format_frame(extended) == '< frame 0000001F 2.000000  >'
+    parsed = parse_send('send 1F 2 f 0'.split())
+    assert (parsed.arbitration_id, parsed.is_extended_id, bytes(parsed.data)) == \
+        (0x1F, False, b'\x0f\x00')
+    assert parse_send('send 0000001F 0'.split()).is_extended_id
+    for bad in ('send 800 0', 'send 1234 0', 'send 20000000 0', 'send 1 2 0',
+                'send 1 1 g', 'send 1 -1', 'send'):
+        with pytest.raises(SocketcandProtocolError):
+            parse_send(bad.split())
+
+
+def test_client_that_never_finishes_the_handshake_is_dropped():
+    with SocketcandServer(f'test_socketcand_{uuid.uuid4().hex}', io_timeout_s=0.2) as server:
+        silent = RawClient(server.port, handshake=False)
+        assert silent.reply() == b'< hi >'
+        assert silent.closed_by_server()
+        silent.close()
+        assert wait_for(lambda: server.client_count == 0)
