@@ -10,8 +10,10 @@ from flexure_ctrl.core.design import CharacterisationData, Design, LinkGeometry
 import numpy as np
 import pytest
 
+# Always a domain of this test run's own (not the shell's): two runs at once, or a
+# run beside a live system, must not hear each other.
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
+os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
 
 FLEXURE_LENGTH_M = 0.03
 STROKE_M = 0.045

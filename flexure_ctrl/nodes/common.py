@@ -1,0 +1,116 @@
+"""
+Shared plumbing of the thin ROS nodes: the main() pattern and parameter helpers.
+
+Nodes stay thin: they declare parameters (with descriptors and ranges, so that a bad
+value is rejected when it is set), wire topics and timers, and call the core.
+"""
+
+from typing import Callable, Optional, Sequence
+
+from flexure_ctrl.core.design import Design, design_from_parameters, nest_dotted, TABLE_KEYS
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import ParameterType
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+RIG_FRAME = 'rig'
+ACTUATOR_NAMES = ('actuator_1', 'actuator_2')
+
+# Topic and service names: the package's public interface (README lists them).
+DEMAND_TOPIC = '/flexure/demand'
+DEMAND_PATH_TOPIC = '/flexure/demand_path'
+COMMAND_TOPIC = '/flexure/command'
+SETPOINTS_TOPIC = '/flexure/actuator_setpoints'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+
+
+def actuator_state_topic(actuator: str) -> str:
+    """Topic of one actuator's measured state, e.g. ``/flexure/actuator_1/state``."""
+    return f'/flexure/{actuator}/state'
+
+
+def tracker_topic(target: str) -> str:
+    """Topic of one tracker target's point, e.g. ``/flexure/tracker/end``."""
+    return f'/flexure/tracker/{target}'
+
+
+def float_descriptor(description: str, low: float, high: float, step: float = 0.0,
+                     read_only: bool = False) -> ParameterDescriptor:
+    """Descriptor of a double parameter restricted to ``[low, high]``."""
+    return ParameterDescriptor(
+        type=ParameterType.PARAMETER_DOUBLE, description=description, read_only=read_only,
+        floating_point_range=[FloatingPointRange(from_value=float(low), to_value=float(high),
+                                                 step=float(step))])
+
+
+def int_descriptor(description: str, low: int, high: int,
+                   read_only: bool = False) -> ParameterDescriptor:
+    """Descriptor of an integer parameter restricted to ``[low, high]``."""
+    return ParameterDescriptor(
+        type=ParameterType.PARAMETER_INTEGER, description=description, read_only=read_only,
+        integer_range=[IntegerRange(from_value=int(low), to_value=int(high), step=1)])
+
+
+def typed_descriptor(parameter_type: int, description: str,
+                     read_only: bool = False) -> ParameterDescriptor:
+    """Descriptor of a parameter with a type but no range (strings, bools, arrays)."""
+    return ParameterDescriptor(type=parameter_type, description=description,
+                               read_only=read_only)
+
+
+_DESIGN_PARAMETERS = (
+    [('design.name', ParameterType.PARAMETER_STRING, 'design name'),
+     ('design.description', ParameterType.PARAMETER_STRING, 'what the design is'),
+     ('design.provenance', ParameterType.PARAMETER_STRING, 'synthetic or measured'),
+     ('design.provenance_note', ParameterType.PARAMETER_STRING, 'how the table was made'),
+     ('design.recommended', ParameterType.PARAMETER_BOOL, 'false for designs to avoid'),
+     ('design.warning', ParameterType.PARAMETER_STRING, 'why a design is not recommended'),
+     ('design.branch', ParameterType.PARAMETER_STRING, 'above or below'),
+     ('design.stroke_limit_m', ParameterType.PARAMETER_DOUBLE,
+      'symmetric actuator stroke limit (m)')]
+    + [(f'design.table.{key}', ParameterType.PARAMETER_DOUBLE_ARRAY,
+        'characterisation table column (m or rad)') for key in TABLE_KEYS]
+    + [(f'design.geometry.{key}', ParameterType.PARAMETER_DOUBLE, 'link geometry (m)')
+       for key in ('link1_length_m', 'link1_offset_m', 'link2_length_m', 'link2_offset_m')])
+
+
+def declare_design(node: Node) -> Design:
+    """
+    Declare the design parameters (read-only) and build the validated design.
+
+    The values come from ``--params-file config/designs/<name>.yaml``; a missing or bad
+    value raises :class:`~flexure_ctrl.core.errors.DesignFileError` naming the key.
+    """
+    flat = {}
+    for name, parameter_type, description in _DESIGN_PARAMETERS:
+        descriptor = ParameterDescriptor(description=description, read_only=True)
+        # Statically typed with no default: absent from the file means not set.
+        parameter = node.declare_parameter(name, Parameter.Type(parameter_type), descriptor)
+        if parameter.type_ != Parameter.Type.NOT_SET:
+            flat[name] = parameter.value
+    return design_from_parameters(nest_dotted(flat), '--params-file (design)')
+
+
+def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
+    """
+    Spin one node until Ctrl-C or SIGTERM, then tear it down cleanly.
+
+    A node that commands hardware defines ``safe_stop()``; it is called in ``finally``,
+    whatever ended the spin, before the node is destroyed.
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            safe_stop = getattr(node, 'safe_stop', None)
+            if safe_stop is not None:
+                safe_stop()
+            node.destroy_node()
+        rclpy.try_shutdown()

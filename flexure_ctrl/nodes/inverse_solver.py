@@ -1,0 +1,127 @@
+"""
+Inverse solver node: command end points in, actuator extension setpoints out.
+
+Each command point is solved with the core's look-up-table inverse, warm-started from
+the previous solution, and published as a ``JointState`` (``actuator_1``,
+``actuator_2``; position in m, velocity in m/s). The velocity is the Jacobian inverse
+applied to the command's velocity (finite difference of successive command points).
+When the planned command path arrives, the whole path is solved ahead, so an
+unreachable path is reported before the arm moves. A point outside the workspace or the
+stroke is reported on ``/diagnostics`` and in the log, and never sent.
+"""
+
+from typing import Optional
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from flexure_ctrl.core.errors import UnreachablePointError
+from flexure_ctrl.core.inverse import InverseSolver
+from flexure_ctrl.nodes.common import (ACTUATOR_NAMES, COMMAND_TOPIC, declare_design,
+                                       DIAGNOSTICS_TOPIC, run_node, SETPOINTS_TOPIC)
+from flexure_ctrl.nodes.trajectory_generator import COMMAND_PATH_TOPIC, latched_qos
+from geometry_msgs.msg import PointStamped
+from nav_msgs.msg import Path
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+STATUS_NAME = 'flexure_ctrl/inverse_solver'
+
+
+class InverseSolverNode(Node):
+    """Turn each command point into the two actuator extension setpoints."""
+
+    def __init__(self, **kwargs):
+        super().__init__('inverse_solver', **kwargs)
+        self.design = declare_design(self)
+        self.solver = InverseSolver.from_design(self.design)
+        self._previous: Optional[np.ndarray] = None
+        self._previous_point: Optional[np.ndarray] = None
+        self._previous_stamp_ns: Optional[int] = None
+        self.solved = 0
+        self.refused = 0
+        self.last_problem = ''
+        self.path_problem = ''
+        self.setpoint_publisher = self.create_publisher(JointState, SETPOINTS_TOPIC, 10)
+        self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
+                                                           10)
+        self.create_subscription(PointStamped, COMMAND_TOPIC, self._on_command, 10)
+        self.create_subscription(Path, COMMAND_PATH_TOPIC, self._on_path, latched_qos())
+        self.create_timer(1.0, self._publish_diagnostics)
+        self._setpoint = JointState()
+        self._setpoint.name = list(ACTUATOR_NAMES)
+        self.get_logger().info(
+            f'design {self.design.name} ({self.design.provenance}), branch '
+            f'{self.design.branch}, stroke +-{self.design.stroke_limit_m * 1e3:.1f} mm')
+        if self.design.warning:
+            self.get_logger().warning(f'design {self.design.name}: {self.design.warning}')
+
+    def _on_path(self, message: Path) -> None:
+        points = np.array([[pose.pose.position.x, pose.pose.position.y]
+                           for pose in message.poses])
+        if len(points) == 0:
+            return
+        try:
+            solution = self.solver.solve(points)
+        except UnreachablePointError as error:
+            self.path_problem = f'planned path: {error}'
+            self.get_logger().error(self.path_problem)
+        else:
+            self.path_problem = ''
+            self.get_logger().info(
+                f'planned path of {len(points)} points solved ahead: actuator 1 '
+                f'{solution[:, 0].min() * 1e3:+.2f}..{solution[:, 0].max() * 1e3:+.2f} mm, '
+                f'actuator 2 {solution[:, 1].min() * 1e3:+.2f}..'
+                f'{solution[:, 1].max() * 1e3:+.2f} mm')
+        self._publish_diagnostics()
+
+    def _on_command(self, message: PointStamped) -> None:
+        point = np.array([message.point.x, message.point.y])
+        stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+        try:
+            extensions = self.solver.solve(point, initial_m=self._previous)
+        except UnreachablePointError as error:
+            self.refused += 1
+            self.last_problem = str(error).replace('end point #0 ', 'command point ')
+            self.get_logger().error(f'not sent: {self.last_problem}',
+                                    throttle_duration_sec=1.0)
+            self._previous_point = None
+            self._publish_diagnostics()
+            return
+        velocity = np.zeros(2)
+        if self._previous_point is not None and stamp_ns > self._previous_stamp_ns:
+            point_velocity = (point - self._previous_point) / (
+                (stamp_ns - self._previous_stamp_ns) * 1e-9)
+            _, jacobian, _ = self.solver.arm.forward_with_jacobian(extensions[0],
+                                                                   extensions[1])
+            velocity = np.linalg.solve(jacobian, point_velocity)
+        self._previous = extensions
+        self._previous_point = point
+        self._previous_stamp_ns = stamp_ns
+        self._setpoint.header.stamp = message.header.stamp
+        self._setpoint.position = [float(extensions[0]), float(extensions[1])]
+        self._setpoint.velocity = [float(velocity[0]), float(velocity[1])]
+        self.setpoint_publisher.publish(self._setpoint)
+        self.solved += 1
+        self.last_problem = ''
+
+    def _publish_diagnostics(self) -> None:
+        status = DiagnosticStatus(name=STATUS_NAME, hardware_id=self.design.name)
+        problem = self.path_problem or self.last_problem
+        status.level = DiagnosticStatus.ERROR if problem else DiagnosticStatus.OK
+        status.message = problem or 'solving'
+        status.values = [KeyValue(key='design', value=self.design.name),
+                         KeyValue(key='branch', value=self.design.branch),
+                         KeyValue(key='points_solved', value=str(self.solved)),
+                         KeyValue(key='points_refused', value=str(self.refused))]
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self.diagnostics_publisher.publish(array)
+
+
+def main(args=None) -> None:
+    run_node(InverseSolverNode, args)
+
+
+if __name__ == '__main__':
+    main()
