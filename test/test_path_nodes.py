@@ -109,6 +109,7 @@ def test_setpoints_realise_the_command_through_the_table(harness_factory):
     # points, which is the path velocity half a sample earlier.
     path = SinePath(period_s=1.0)
     start_ns = generator.last_run_start_ns
+
     def stamp_ns(message):
         return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
 
