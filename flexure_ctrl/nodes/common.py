@@ -12,9 +12,11 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rcl_interfaces.msg import ParameterType
 import rclpy
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+RCLError = rclpy_implementation.RCLError
 RIG_FRAME = 'rig'
 ACTUATOR_NAMES = ('actuator_1', 'actuator_2')
 
@@ -107,6 +109,11 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # A signal that shuts the context down while the executor is building its wait
+        # set surfaces as RCLError (ros2/rclpy#398); only then is it a clean stop.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             safe_stop = getattr(node, 'safe_stop', None)
