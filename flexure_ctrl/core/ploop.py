@@ -1,0 +1,314 @@
+"""
+The actuator position loop: a proportional law, its limits and a setpoint watchdog.
+
+The paper runs each lead-screw actuator under a proportional feedback loop on the error
+between the extension command (the feedforward setpoint) and the actuator's own
+potentiometer. The drive itself runs in CiA 402 profile-velocity mode, so the loop's
+output is a velocity command:
+
+    v = gain * (clamp(setpoint, +-stroke) - measured) + feedforward * setpoint_velocity
+
+clipped to the speed limit, and never pointing further outward when the actuator is
+already at (or past) its stroke limit.
+
+Everything here is pure and allocation-free on the hot path: plain floats in, plain
+floats out, state kept in slots. Positions are in m, velocities in m/s, accelerations in
+m/s^2, durations in s and timestamps in integer nanoseconds of one monotonic clock.
+"""
+
+from dataclasses import dataclass
+import math
+
+from flexure_ctrl.core.errors import FlexureCtrlError
+
+_NS_PER_S = 1_000_000_000
+
+
+class LoopConfigError(FlexureCtrlError, ValueError):
+    """A loop gain, limit or timeout is out of its valid range."""
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise LoopConfigError(message)
+
+
+@dataclass(frozen=True)
+class LoopLimits:
+    """
+    Limits of one actuator loop.
+
+    :param max_speed_m_s: largest velocity command magnitude (m/s), > 0.
+    :param stroke_limit_m: symmetric extension limit (m), > 0: setpoints are clamped to
+        ``[-stroke_limit_m, +stroke_limit_m]`` and no outward command is given past it.
+    :param max_accel_m_s2: largest acceleration (m/s^2) of ramps, > 0; the deceleration a
+        :class:`SetpointWatchdog` built with :meth:`SetpointWatchdog.from_limits` uses.
+    """
+
+    max_speed_m_s: float
+    stroke_limit_m: float
+    max_accel_m_s2: float = 1.0
+
+    def __post_init__(self) -> None:
+        """Reject non-positive or non-finite limits."""
+        for name in ('max_speed_m_s', 'stroke_limit_m', 'max_accel_m_s2'):
+            value = getattr(self, name)
+            _require(math.isfinite(value) and value > 0.0,
+                     f'{name} must be finite and > 0, got {value!r}')
+
+
+class ProportionalLoop:
+    """
+    Proportional position loop with velocity feedforward, speed and stroke limits.
+
+    After each :meth:`command` the attributes :attr:`setpoint_clamped` (the setpoint lay
+    outside the stroke and was clamped), :attr:`stroke_guarded` (an outward command at the
+    stroke limit was zeroed) and :attr:`invalid_input` (a non-finite input gave a zero
+    command) report what the limits did; :attr:`clamp_count` counts clamped setpoints.
+    The inverse solver never sends a setpoint outside the stroke, so a clamp means an
+    upstream bug: the loop is the last line of defence and says so.
+    """
+
+    __slots__ = ('_gain_per_s', '_velocity_feedforward', 'limits', 'setpoint_clamped',
+                 'stroke_guarded', 'invalid_input', 'clamp_count')
+
+    def __init__(self, gain_per_s: float, velocity_feedforward: float,
+                 limits: LoopLimits) -> None:
+        """
+        Build a loop.
+
+        :param gain_per_s: proportional gain (1/s): m/s of command per m of error.
+        :param velocity_feedforward: fraction (0 to 1) of the setpoint velocity fed forward.
+        :param limits: speed, stroke and ramp limits.
+        :raises LoopConfigError: a gain or fraction out of range.
+        """
+        self._gain_per_s = 0.0
+        self._velocity_feedforward = 0.0
+        self.gain_per_s = gain_per_s
+        self.velocity_feedforward = velocity_feedforward
+        self.limits = limits
+        self.setpoint_clamped = False
+        self.stroke_guarded = False
+        self.invalid_input = False
+        self.clamp_count = 0
+
+    @property
+    def gain_per_s(self) -> float:
+        """Proportional gain (1/s); may be changed between two commands."""
+        return self._gain_per_s
+
+    @gain_per_s.setter
+    def gain_per_s(self, value: float) -> None:
+        _require(math.isfinite(value) and value >= 0.0,
+                 f'gain_per_s must be finite and >= 0, got {value!r}')
+        self._gain_per_s = float(value)
+
+    @property
+    def velocity_feedforward(self) -> float:
+        """Fraction (0 to 1) of the setpoint velocity fed forward; may change live."""
+        return self._velocity_feedforward
+
+    @velocity_feedforward.setter
+    def velocity_feedforward(self, value: float) -> None:
+        _require(0.0 <= value <= 1.0,
+                 f'velocity_feedforward must lie in [0, 1], got {value!r}')
+        self._velocity_feedforward = float(value)
+
+    def command(self, setpoint_m: float, setpoint_velocity_m_s: float,
+                measured_m: float) -> float:
+        """
+        Compute one loop cycle's velocity command, in m/s.
+
+        A setpoint outside the stroke is clamped to it and its feedforward dropped (the
+        clamped setpoint does not move). A non-finite input gives 0.0.
+
+        :param setpoint_m: extension setpoint (m).
+        :param setpoint_velocity_m_s: setpoint velocity (m/s).
+        :param measured_m: potentiometer extension (m).
+        :returns: the velocity command (m/s), within ``+-max_speed_m_s``.
+        """
+        limits = self.limits
+        stroke = limits.stroke_limit_m
+        if not (math.isfinite(setpoint_m) and math.isfinite(setpoint_velocity_m_s)
+                and math.isfinite(measured_m)):
+            self.invalid_input = True
+            self.setpoint_clamped = False
+            self.stroke_guarded = False
+            return 0.0
+        self.invalid_input = False
+        feedforward = self._velocity_feedforward * setpoint_velocity_m_s
+        if setpoint_m > stroke:
+            setpoint_m = stroke
+            feedforward = 0.0
+            self.setpoint_clamped = True
+        elif setpoint_m < -stroke:
+            setpoint_m = -stroke
+            feedforward = 0.0
+            self.setpoint_clamped = True
+        else:
+            self.setpoint_clamped = False
+        if self.setpoint_clamped:
+            self.clamp_count += 1
+        velocity = self._gain_per_s * (setpoint_m - measured_m) + feedforward
+        max_speed = limits.max_speed_m_s
+        if velocity > max_speed:
+            velocity = max_speed
+        elif velocity < -max_speed:
+            velocity = -max_speed
+        # Past the stroke the screw may bind or the flexure overload: never push further.
+        if (velocity > 0.0 and measured_m >= stroke) or (
+                velocity < 0.0 and measured_m <= -stroke):
+            self.stroke_guarded = True
+            return 0.0
+        self.stroke_guarded = False
+        return velocity
+
+
+class SetpointWatchdog:
+    """
+    Ramp the command to zero when the setpoint stream stops, and hold it there.
+
+    :meth:`feed` on each fresh setpoint; :meth:`limit` on each loop cycle. While a setpoint
+    is younger than ``timeout_s`` the command passes unchanged. Once it is older (or before
+    the first one), the output ramps from its last value towards zero at exactly
+    ``decel_m_s2`` and then holds zero, whatever the loop asks, until the next feed.
+    """
+
+    __slots__ = ('_timeout_ns', 'decel_m_s2', '_last_feed_ns', '_output_m_s', '_expired')
+
+    def __init__(self, timeout_s: float, decel_m_s2: float) -> None:
+        """
+        Build a watchdog that starts expired (no setpoint yet).
+
+        :param timeout_s: largest setpoint age (s) before the ramp starts, > 0.
+        :param decel_m_s2: deceleration of the ramp to zero (m/s^2), > 0.
+        :raises LoopConfigError: a non-positive timeout or deceleration.
+        """
+        _require(math.isfinite(timeout_s) and timeout_s > 0.0,
+                 f'timeout_s must be finite and > 0, got {timeout_s!r}')
+        _require(math.isfinite(decel_m_s2) and decel_m_s2 > 0.0,
+                 f'decel_m_s2 must be finite and > 0, got {decel_m_s2!r}')
+        self._timeout_ns = int(round(timeout_s * _NS_PER_S))
+        self.decel_m_s2 = float(decel_m_s2)
+        self._last_feed_ns = None
+        self._output_m_s = 0.0
+        self._expired = True
+
+    @classmethod
+    def from_limits(cls, timeout_s: float, limits: LoopLimits) -> 'SetpointWatchdog':
+        """Watchdog that ramps at the loop's ``max_accel_m_s2``."""
+        return cls(timeout_s, limits.max_accel_m_s2)
+
+    @property
+    def timeout_s(self) -> float:
+        """Largest setpoint age (s) before the ramp starts."""
+        return self._timeout_ns / _NS_PER_S
+
+    @property
+    def expired(self) -> bool:
+        """Whether the last :meth:`limit` found no fresh setpoint (ramping or holding)."""
+        return self._expired
+
+    @property
+    def output_m_s(self) -> float:
+        """Return the last command :meth:`limit` gave (m/s)."""
+        return self._output_m_s
+
+    def feed(self, now_ns: int) -> None:
+        """Note a fresh setpoint received at ``now_ns`` (ns, monotonic)."""
+        self._last_feed_ns = now_ns
+
+    def reset(self) -> None:
+        """Forget the last output (the drive was stopped by other means); keep the feed."""
+        self._output_m_s = 0.0
+
+    def is_fresh(self, now_ns: int) -> bool:
+        """Whether the last setpoint is at most ``timeout_s`` old at ``now_ns``."""
+        last = self._last_feed_ns
+        return last is not None and now_ns - last <= self._timeout_ns
+
+    def setpoint_age_s(self, now_ns: int) -> float:
+        """Age (s) of the last setpoint at ``now_ns``; infinity before the first one."""
+        last = self._last_feed_ns
+        return math.inf if last is None else (now_ns - last) / _NS_PER_S
+
+    def limit(self, command_m_s: float, now_ns: int, dt_s: float) -> float:
+        """
+        Apply the watchdog to one cycle's command.
+
+        :param command_m_s: the loop's velocity command (m/s).
+        :param now_ns: time of this cycle (ns, same clock as :meth:`feed`).
+        :param dt_s: time since the previous cycle (s); sets the ramp step.
+        :returns: the command to send (m/s).
+        """
+        if self.is_fresh(now_ns):
+            self._expired = False
+            self._output_m_s = command_m_s
+            return command_m_s
+        self._expired = True
+        step = self.decel_m_s2 * (dt_s if dt_s > 0.0 else 0.0)
+        previous = self._output_m_s
+        if previous > step:
+            output = previous - step
+        elif previous < -step:
+            output = previous + step
+        else:
+            output = 0.0
+        self._output_m_s = output
+        return output
+
+
+class FirstOrderHold:
+    """
+    Extrapolate the latest setpoint between arrivals (first-order hold).
+
+    The loop runs faster (500 Hz) than setpoints arrive (the demand rate, e.g. 100 Hz),
+    so at time t the setpoint used is ``position + velocity * (t - stamp)``. The age is
+    capped at ``max_age_s``: a stale setpoint stops moving instead of running away, and
+    its velocity (for the feedforward) reads zero from then on.
+    """
+
+    __slots__ = ('_max_age_ns', 'position_m', 'velocity_m_s', 'stamp_ns')
+
+    def __init__(self, max_age_s: float) -> None:
+        """
+        Build an empty hold.
+
+        :param max_age_s: longest extrapolation (s), >= 0.
+        :raises LoopConfigError: a negative or non-finite cap.
+        """
+        _require(math.isfinite(max_age_s) and max_age_s >= 0.0,
+                 f'max_age_s must be finite and >= 0, got {max_age_s!r}')
+        self._max_age_ns = int(round(max_age_s * _NS_PER_S))
+        self.position_m = 0.0
+        self.velocity_m_s = 0.0
+        self.stamp_ns = None
+
+    @property
+    def has_setpoint(self) -> bool:
+        """Whether any setpoint has been received."""
+        return self.stamp_ns is not None
+
+    def update(self, position_m: float, velocity_m_s: float, stamp_ns: int) -> None:
+        """Store a setpoint (m, m/s) valid at ``stamp_ns`` (ns, monotonic)."""
+        self.position_m = position_m
+        self.velocity_m_s = velocity_m_s
+        self.stamp_ns = stamp_ns
+
+    def _age_ns(self, now_ns: int) -> int:
+        age = now_ns - self.stamp_ns
+        if age < 0:
+            return 0
+        return self._max_age_ns if age > self._max_age_ns else age
+
+    def position(self, now_ns: int) -> float:
+        """Extrapolated setpoint (m) at ``now_ns``; 0.0 before the first setpoint."""
+        if self.stamp_ns is None:
+            return 0.0
+        return self.position_m + self.velocity_m_s * (self._age_ns(now_ns) / _NS_PER_S)
+
+    def velocity(self, now_ns: int) -> float:
+        """Return the setpoint velocity in m/s at ``now_ns``, zero once the age cap is hit."""
+        if self.stamp_ns is None or now_ns - self.stamp_ns >= self._max_age_ns:
+            return 0.0
+        return self.velocity_m_s

@@ -1,0 +1,152 @@
+"""Tests of the actuator P-loop law, its limits, the setpoint watchdog and the hold."""
+
+import math
+
+from flexure_ctrl.core.ploop import FirstOrderHold, LoopConfigError, LoopLimits
+from flexure_ctrl.core.ploop import ProportionalLoop, SetpointWatchdog
+import pytest
+
+STROKE_M = 0.045
+LIMITS = LoopLimits(max_speed_m_s=0.02, stroke_limit_m=STROKE_M, max_accel_m_s2=1.0)
+MS = 1_000_000  # ns per ms
+
+
+@pytest.mark.parametrize('gain, ff, sp, spv, measured', [
+    (20.0, 1.0, 0.010, 0.002, 0.0098),
+    (20.0, 0.5, -0.020, -0.004, -0.0201),
+    (5.0, 0.0, 0.0, 0.003, 0.001),
+    (0.0, 1.0, 0.03, -0.005, 0.0),
+])
+def test_law_matches_closed_form(gain, ff, sp, spv, measured):
+    loop = ProportionalLoop(gain, ff, LIMITS)
+    assert loop.command(sp, spv, measured) == pytest.approx(gain * (sp - measured) + ff * spv)
+    assert not loop.setpoint_clamped and not loop.stroke_guarded
+
+
+def test_command_saturates_at_max_speed():
+    loop = ProportionalLoop(20.0, 1.0, LIMITS)
+    assert loop.command(0.04, 0.0, 0.0) == LIMITS.max_speed_m_s
+    assert loop.command(-0.04, 0.0, 0.0) == -LIMITS.max_speed_m_s
+    assert loop.command(0.0, 0.5, 0.0) == LIMITS.max_speed_m_s
+
+
+def test_no_outward_motion_at_stroke_limit():
+    loop = ProportionalLoop(20.0, 1.0, LIMITS)
+    # At +limit a setpoint at the limit with outward feedforward gives no outward command.
+    assert loop.command(STROKE_M, 0.01, STROKE_M) == 0.0
+    assert loop.stroke_guarded
+    assert loop.command(-STROKE_M, -0.01, -STROKE_M - 1e-4) == 0.0
+    assert loop.stroke_guarded
+    # Inward motion from past the limit is allowed.
+    assert loop.command(STROKE_M - 0.001, 0.0, STROKE_M + 0.0005) < 0.0
+    assert not loop.stroke_guarded
+    assert loop.command(-STROKE_M + 0.001, 0.0, -STROKE_M) > 0.0
+
+
+def test_setpoint_outside_stroke_is_clamped_and_flagged():
+    loop = ProportionalLoop(10.0, 1.0, LIMITS)
+    command = loop.command(0.06, 0.01, STROKE_M - 0.001)
+    # Clamped to the stroke, feedforward dropped: 10 * 0.001.
+    assert command == pytest.approx(0.01)
+    assert loop.setpoint_clamped and loop.clamp_count == 1
+    assert loop.command(-1.0, 0.0, -STROKE_M + 0.0005) == pytest.approx(-0.005)
+    assert loop.setpoint_clamped and loop.clamp_count == 2
+    loop.command(0.0, 0.0, 0.0)
+    assert not loop.setpoint_clamped and loop.clamp_count == 2
+
+
+def test_non_finite_input_gives_zero():
+    loop = ProportionalLoop(10.0, 1.0, LIMITS)
+    assert loop.command(math.nan, 0.0, 0.0) == 0.0
+    assert loop.invalid_input
+    assert loop.command(0.01, math.inf, 0.0) == 0.0
+    assert loop.command(0.01, 0.0, 0.0) == pytest.approx(0.02)
+    assert not loop.invalid_input
+
+
+def test_gains_change_live_and_are_validated():
+    loop = ProportionalLoop(10.0, 1.0, LIMITS)
+    loop.gain_per_s = 2.0
+    loop.velocity_feedforward = 0.0
+    assert loop.command(0.001, 0.005, 0.0) == pytest.approx(0.002)
+    with pytest.raises(LoopConfigError):
+        loop.velocity_feedforward = 1.5
+    with pytest.raises(LoopConfigError):
+        loop.gain_per_s = -1.0
+    with pytest.raises(LoopConfigError):
+        LoopLimits(max_speed_m_s=0.0, stroke_limit_m=0.04)
+    with pytest.raises(LoopConfigError):
+        SetpointWatchdog(0.0, 1.0)
+
+
+def test_watchdog_passes_fresh_commands_then_ramps_at_decel_and_holds():
+    decel = 0.5
+    dt_s = 0.002
+    watchdog = SetpointWatchdog(timeout_s=0.1, decel_m_s2=decel)
+    # Never fed: expired from the start, holds zero.
+    assert watchdog.limit(0.01, 0, dt_s) == 0.0 and watchdog.expired
+    watchdog.feed(0)
+    now = 0
+    for _ in range(50):
+        now += 2 * MS
+        assert watchdog.limit(0.01, now, dt_s) == 0.01
+    assert not watchdog.expired
+    # Last feed at 0; at 102 ms the setpoint is stale.
+    outputs = []
+    while now < 200 * MS:
+        now += 2 * MS
+        outputs.append(watchdog.limit(0.01, now, dt_s))
+    assert watchdog.expired
+    steps = [a - b for a, b in zip([0.01] + outputs, outputs)]
+    ramp = [step for step, out in zip(steps, outputs) if out > 0.0]
+    assert ramp and all(step == pytest.approx(decel * dt_s) for step in ramp)
+    # 0.01 m/s at 0.5 m/s^2 is 20 ms = 10 cycles, then exactly zero, held.
+    assert len(ramp) == 9 and outputs[9:] == [0.0] * (len(outputs) - 9)
+    # Negative commands ramp up towards zero symmetrically.
+    watchdog.feed(now)
+    watchdog.limit(-0.004, now, dt_s)
+    assert watchdog.limit(-0.004, now + 101 * MS, dt_s) == pytest.approx(-0.004 + decel * dt_s)
+    # Resumes on feed.
+    watchdog.feed(now + 150 * MS)
+    assert watchdog.limit(0.007, now + 151 * MS, dt_s) == 0.007
+    assert not watchdog.expired
+    assert watchdog.setpoint_age_s(now + 151 * MS) == pytest.approx(0.001)
+
+
+def test_first_order_hold_extrapolates_with_capped_age():
+    hold = FirstOrderHold(max_age_s=0.02)
+    assert not hold.has_setpoint and hold.position(0) == 0.0 and hold.velocity(0) == 0.0
+    hold.update(0.010, 0.005, 1_000 * MS)
+    assert hold.position(1_000 * MS) == pytest.approx(0.010)
+    assert hold.position(1_004 * MS) == pytest.approx(0.010 + 0.005 * 0.004)
+    assert hold.velocity(1_004 * MS) == 0.005
+    # Capped at 20 ms: no runaway, and the feedforward velocity drops to zero.
+    assert hold.position(1_500 * MS) == pytest.approx(0.010 + 0.005 * 0.020)
+    assert hold.velocity(1_500 * MS) == 0.0
+    # A stamp in the future (clock skew) does not extrapolate backwards.
+    assert hold.position(999 * MS) == pytest.approx(0.010)
+
+
+def test_closed_loop_step_response_has_time_constant_one_over_gain():
+    """A fast first-order-lag plant under the loop follows exp(-gain t)."""
+    gain = 20.0
+    limits = LoopLimits(max_speed_m_s=1.0, stroke_limit_m=STROKE_M, max_accel_m_s2=1.0)
+    loop = ProportionalLoop(gain, 0.0, limits)
+    dt_s = 0.0005
+    plant_lag_s = 0.001  # 50 times faster than the loop's 1/gain
+    step_m = 0.002
+    position_m = 0.0
+    velocity_m_s = 0.0
+    alpha = dt_s / (plant_lag_s + dt_s)  # discrete first-order lag of the velocity
+    samples = {}
+    for k in range(1, int(0.5 / dt_s) + 1):
+        command = loop.command(step_m, 0.0, position_m)
+        velocity_m_s += alpha * (command - velocity_m_s)
+        position_m += velocity_m_s * dt_s
+        samples[k] = position_m
+    tau_steps = int(round(1.0 / gain / dt_s))
+    # After one time constant 63 % of the step, after three 95 %; the small plant lag
+    # delays the response a little, hence the tolerance.
+    assert samples[tau_steps] / step_m == pytest.approx(1.0 - math.exp(-1.0), abs=0.03)
+    assert samples[3 * tau_steps] / step_m == pytest.approx(1.0 - math.exp(-3.0), abs=0.02)
+    assert abs(position_m - step_m) < 1e-6
