@@ -1,0 +1,403 @@
+"""
+Tests of the actuator loop node in-process, against a simulated drive on a virtual bus.
+
+The node runs in its own rclpy context with python-can's ``virtual`` interface; a
+SimulatedDrive on the same virtual channel is ticked in real time by a thread, and a
+sniffer bus on that channel records every RPDO the node sends. The test spins one
+executor (node plus a helper node that publishes setpoints) with timeouts and waits on
+conditions, never on fixed sleeps.
+"""
+
+import math
+import threading
+import time
+from typing import Callable, Iterator, List, Optional, Tuple
+import uuid
+
+import can
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from flexure_ctrl.core import cia402
+from flexure_ctrl.core.cia402 import Controlword, DriveState
+from flexure_ctrl.nodes.actuator_loop import ActuatorLoop, ActuatorLoopConfigError
+from flexure_ctrl.nodes.actuator_loop import DriveConnectError, Mode
+from flexure_ctrl.nodes.common import actuator_state_topic, DIAGNOSTICS_TOPIC
+from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
+from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
+import numpy as np
+import pytest
+import rclpy
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+NODE_ID = 9
+ACTUATOR = 'actuator_1'
+WATCHDOG_TIMEOUT_S = 0.1
+WATCHDOG_DECEL_M_S2 = 1.0
+
+
+class TickedDrive:
+    """A SimulatedDrive on its own virtual bus, ticked from a thread in real time."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface='virtual', channel=channel)
+        parameters = LeadScrewParameters(lag_s=0.02, backlash_m=0.0, pot_noise_m=0.0)
+        self.actuator = LeadScrewActuator(parameters, np.random.default_rng(2))
+        self.drive = SimulatedDrive(self.bus, NODE_ID, self.actuator)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        last_s = time.monotonic()
+        while not self._stop.is_set():
+            now_s = time.monotonic()
+            self.drive.tick(now_s, now_s - last_s)
+            last_s = now_s
+            self._stop.wait(0.001)  # pacing of the simulated drive, ~1 kHz
+
+    def stop_ticking(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+
+    def shutdown(self) -> None:
+        self.stop_ticking()
+        self.drive.shutdown()
+        self.bus.shutdown()
+
+
+class Harness:
+    """The node under test, a helper node and one executor spun by the test."""
+
+    def __init__(self, context: rclpy.Context, channel: str) -> None:
+        self.context = context
+        self.channel = channel
+        self.node: Optional[ActuatorLoop] = None
+        self.executor = SingleThreadedExecutor(context=context)
+        self.helper = Node('actuator_loop_test_helper', context=context)
+        self.executor.add_node(self.helper)
+        self.sniffer = can.Bus(interface='virtual', channel=channel)
+        # (wall time s, controlword, velocity counts/s) of every RPDO the node sent.
+        self.rpdos: List[Tuple[float, int, int]] = []
+        self.states: List[JointState] = []
+        self.diagnostics: List[DiagnosticStatus] = []
+        self.setpoint: Optional[Callable[[float], Tuple[float, float]]] = None
+        self._setpoint_origin_s = 0.0
+        self.last_setpoint_wall_s = 0.0
+        self.publisher = self.helper.create_publisher(JointState, SETPOINTS_TOPIC, 10)
+        self.helper.create_subscription(JointState, actuator_state_topic(ACTUATOR),
+                                        self.states.append, 100)
+        self.helper.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
+                                        self._on_diagnostics, 100)
+        self.helper.create_timer(0.01, self._publish_setpoint)  # the 100 Hz demand rate
+        self.reset_client = self.helper.create_client(Trigger, f'/{ACTUATOR}/reset')
+        self.quick_stop_client = self.helper.create_client(Trigger, f'/{ACTUATOR}/quick_stop')
+
+    def follow(self, setpoint: Optional[Callable[[float], Tuple[float, float]]]) -> None:
+        """Publish ``setpoint(t)`` (m, m/s) at 100 Hz from now on, t from now (s)."""
+        self._setpoint_origin_s = time.monotonic()
+        self.setpoint = setpoint
+
+    def start_node(self, *extra: str) -> ActuatorLoop:
+        self.node = make_node(self.context, self.channel, *extra)
+        self.executor.add_node(self.node)
+        return self.node
+
+    def _on_diagnostics(self, message: DiagnosticArray) -> None:
+        self.diagnostics.extend(s for s in message.status if s.name.endswith(ACTUATOR))
+
+    def _publish_setpoint(self) -> None:
+        if self.setpoint is None:
+            return
+        position_m, velocity_m_s = self.setpoint(time.monotonic() - self._setpoint_origin_s)
+        message = JointState()
+        message.header.stamp = self.helper.get_clock().now().to_msg()
+        # The other actuator's entry comes first and must be ignored.
+        message.name = ['actuator_2', ACTUATOR]
+        message.position = [-0.03, position_m]
+        message.velocity = [0.0, velocity_m_s]
+        self.publisher.publish(message)
+        self.last_setpoint_wall_s = time.time()
+
+    def drain_sniffer(self) -> None:
+        message = self.sniffer.recv(0.0)
+        while message is not None:
+            if message.arbitration_id == cia402.RPDO1_BASE + NODE_ID:
+                controlword, velocity = cia402.decode_pdo(message.data)
+                self.rpdos.append((message.timestamp, controlword, velocity))
+            message = self.sniffer.recv(0.0)
+
+    def spin_until(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self.drain_sniffer()
+            if condition():
+                return
+            assert time.monotonic() < deadline, f'timed out after {timeout_s} s: {what}'
+            self.executor.spin_once(timeout_sec=0.005)
+
+    def spin_for(self, duration_s: float) -> None:
+        end = time.monotonic() + duration_s
+        self.spin_until(lambda: time.monotonic() >= end, duration_s + 5.0, 'spin_for')
+
+    def call(self, client, timeout_s: float = 5.0) -> Trigger.Response:
+        self.spin_until(client.service_is_ready, timeout_s, f'{client.srv_name} ready')
+        future = client.call_async(Trigger.Request())
+        self.spin_until(future.done, timeout_s, f'{client.srv_name} answer')
+        return future.result()
+
+    def shutdown(self) -> None:
+        if self.node is not None:
+            self.executor.remove_node(self.node)
+            self.node.destroy_node()
+        self.executor.remove_node(self.helper)
+        self.helper.destroy_node()
+        self.executor.shutdown()
+        self.sniffer.shutdown()
+
+
+def make_node(context: rclpy.Context, channel: str, *extra: str) -> ActuatorLoop:
+    # Tests other than the watchdog's use a lenient watchdog, so that a stall of this
+    # process's executor (which also publishes the setpoints) on a busy machine does not
+    # stop the actuator halfway.
+    arguments = ['--ros-args', '-r', f'__node:={ACTUATOR}', '-p', f'actuator:={ACTUATOR}',
+                 '-p', 'can.interface:=virtual', '-p', f'can.channel:={channel}',
+                 '-p', f'node_id:={NODE_ID}', '-p', 'design.stroke_limit_m:=0.045',
+                 '-p', 'watchdog_timeout_s:=1.0',
+                 '-p', f'watchdog_decel_m_s2:={WATCHDOG_DECEL_M_S2}',
+                 '-p', 'connect_timeout_s:=5.0', *extra]
+    return ActuatorLoop(context=context, cli_args=arguments)
+
+
+@pytest.fixture
+def context() -> Iterator[rclpy.Context]:
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    yield context
+    rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
+def channel() -> str:
+    return f'vc_actuator_loop_{uuid.uuid4().hex}'
+
+
+@pytest.fixture
+def rig(channel) -> Iterator[TickedDrive]:
+    ticked = TickedDrive(channel)
+    yield ticked
+    ticked.shutdown()
+
+
+@pytest.fixture
+def harness(context, channel) -> Iterator[Harness]:
+    test_harness = Harness(context, channel)
+    yield test_harness
+    test_harness.shutdown()
+
+
+@pytest.fixture
+def watchdog_args() -> Tuple[str, ...]:
+    return ()
+
+
+@pytest.fixture
+def running(rig, harness, watchdog_args) -> Harness:
+    """Start the node and wait until it has enabled the ticking drive."""
+    node = harness.start_node(*watchdog_args)
+    harness.spin_until(lambda: node.mode is Mode.RUNNING, 5.0, 'node running')
+    assert rig.drive.state is DriveState.OPERATION_ENABLED
+    harness.drain_sniffer()
+    harness.rpdos.clear()  # forget the start-up state machine's frames
+    return harness
+
+
+def last_level(harness: Harness) -> Optional[bytes]:
+    return harness.diagnostics[-1].level if harness.diagnostics else None
+
+
+def test_follows_setpoints_and_publishes_state(running, rig):
+    harness = running
+    # A 5 mm ramp over 0.5 s, then hold: within the 20 mm/s speed limit.
+    harness.follow(lambda t: (min(t, 0.5) * 0.01, 0.01 if t < 0.5 else 0.0))
+
+    def settled() -> bool:
+        # The rod and the latest state the helper has read (which may lag a little).
+        return (abs(rig.actuator.rod_position_m - 0.005) < 5e-5 and bool(harness.states)
+                and abs(harness.states[-1].position[0] - 0.005) < 5e-5
+                and abs(harness.states[-1].velocity[0]) < 1e-3)
+
+    harness.spin_until(settled, 4.0, 'rod and state settled at 5 mm')
+    assert list(harness.states[-1].name) == [ACTUATOR]
+    # It stays there: the loop holds a constant setpoint.
+    harness.spin_for(0.3)
+    assert rig.actuator.rod_position_m == pytest.approx(0.005, abs=5e-5)
+    stamps = [s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in harness.states]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    # Every RPDO while running enables operation; velocities within the speed limit.
+    assert all(cw == Controlword.ENABLE_OPERATION for _, cw, _ in harness.rpdos)
+    assert max(abs(v) for _, _, v in harness.rpdos) <= 20_000
+    status = harness.diagnostics[-1]
+    assert status.level == DiagnosticStatus.OK
+    assert status.hardware_id == f'can node {NODE_ID}'
+    values = {kv.key: kv.value for kv in status.values}
+    assert values['drive state'] == DriveState.OPERATION_ENABLED.value
+    median_ms = float(values['loop period median (ms)'])
+    p99_ms = float(values['loop period p99 (ms)'])
+    assert math.isfinite(median_ms) and math.isfinite(p99_ms)
+    median, p99 = running.node.loop_period_stats_ms()
+    print(f'\nloop period at 500 Hz in-process: median {median:.3f} ms, p99 {p99:.3f} ms')
+
+
+def test_parameters_out_of_range_are_rejected_at_set_time(running):
+    node = running.node
+    result = node.set_parameters([Parameter('gain_per_s', value=1000.0)])[0]
+    assert not result.successful
+    assert node.loop.gain_per_s == 20.0
+    result = node.set_parameters([Parameter('velocity_feedforward', value=-0.5)])[0]
+    assert not result.successful
+    # Live-safe parameters apply at once; the others are read-only.
+    assert node.set_parameters([Parameter('gain_per_s', value=35.0)])[0].successful
+    assert node.loop.gain_per_s == 35.0
+    assert node.set_parameters([Parameter('velocity_feedforward', value=0.5)])[0].successful
+    assert node.loop.velocity_feedforward == 0.5
+    assert not node.set_parameters([Parameter('rate_hz', value=250)])[0].successful
+    assert not node.set_parameters([Parameter('max_speed_m_s', value=0.01)])[0].successful
+    assert node.rate_hz == 500
+
+
+@pytest.mark.parametrize('override, error', [
+    ('rate_hz:=0', InvalidParameterValueException),
+    ('gain_per_s:=1000.0', InvalidParameterValueException),
+    ('node_id:=128', InvalidParameterValueException),
+    ('actuator:=actuator_3', ActuatorLoopConfigError),
+])
+def test_bad_parameters_fail_at_start(context, channel, override, error):
+    with pytest.raises(error):
+        make_node(context, channel, '-p', override)
+
+
+def test_missing_stroke_limit_fails_at_start(context, channel):
+    with pytest.raises(ActuatorLoopConfigError, match='stroke_limit_m'):
+        ActuatorLoop(context=context, cli_args=[
+            '--ros-args', '-p', f'actuator:={ACTUATOR}', '-p', 'can.interface:=virtual'])
+
+
+@pytest.mark.parametrize('watchdog_args', [('-p', f'watchdog_timeout_s:={WATCHDOG_TIMEOUT_S}')])
+def test_watchdog_ramps_to_zero_when_setpoints_stop_and_resumes(running, rig):
+    harness = running
+    node = harness.node
+    # A setpoint moving at 10 mm/s keeps the commanded velocity near 10 mm/s.
+    harness.follow(lambda t: (-0.02 + 0.01 * t, 0.01))
+    harness.spin_until(lambda: harness.rpdos and harness.rpdos[-1][2] > 8_000, 3.0,
+                       'moving at ~10 mm/s')
+    harness.follow(None)
+    # The node's own clock of its last setpoint, on the wall clock of the sniffed frames.
+    harness.spin_until(lambda: node.watchdog.expired, 2.0, 'watchdog expired')
+    last_setpoint_s = time.time() - (time.monotonic_ns() - node.hold.stamp_ns) / 1e9
+    harness.spin_until(lambda: harness.rpdos[-1][2] == 0, 2.0, 'zero velocity command')
+    zero_at_s = next(t for t, _, v in harness.rpdos if t > last_setpoint_s and v == 0)
+    ramp_s = 0.01 / WATCHDOG_DECEL_M_S2
+    # Timeout and ramp, plus slack for a loop thread stalled on a busy test machine.
+    assert zero_at_s - last_setpoint_s < WATCHDOG_TIMEOUT_S + ramp_s + 0.05
+    # Not before the timeout: while the setpoint is fresh the command passes unchanged.
+    assert zero_at_s > last_setpoint_s + WATCHDOG_TIMEOUT_S - 0.002
+    harness.spin_until(lambda: last_level(harness) == DiagnosticStatus.WARN, 2.0,
+                       'WARN on diagnostics')
+    # Held at zero, still enabled (RPDOs keep the drive's own RPDO timeout quiet).
+    held_from = len(harness.rpdos)
+    harness.spin_for(0.2)
+    assert [v for _, _, v in harness.rpdos[held_from:]] == [0] * (len(harness.rpdos) - held_from)
+    assert rig.drive.state is DriveState.OPERATION_ENABLED
+    assert abs(rig.actuator.velocity_m_s) < 1e-4
+    # Fresh setpoints: the loop follows again.
+    harness.follow(lambda t: (0.01, 0.0))
+    harness.spin_until(lambda: harness.rpdos[-1][2] > 1_000, 1.0, 'moving again')
+    harness.spin_until(lambda: last_level(harness) == DiagnosticStatus.OK, 2.0, 'OK again')
+
+
+def test_quick_stop_latches_until_reset(running, rig):
+    harness = running
+    harness.follow(lambda t: (0.004, 0.0))
+    harness.spin_until(lambda: rig.actuator.rod_position_m > 0.001, 2.0, 'moving')
+    response = harness.call(harness.quick_stop_client)
+    assert response.success
+    harness.spin_until(lambda: rig.drive.state is DriveState.QUICK_STOP_ACTIVE, 1.0,
+                       'drive quick-stopped')
+    stopped_at = len(harness.rpdos)
+    harness.spin_for(0.3)  # setpoints keep coming: still nothing is commanded
+    assert [cw for _, cw, _ in harness.rpdos[stopped_at - 1:]] == [Controlword.QUICK_STOP]
+    assert rig.drive.state is DriveState.QUICK_STOP_ACTIVE
+    assert running.node.mode is Mode.QUICK_STOPPED
+    assert last_level(harness) == DiagnosticStatus.WARN
+    response = harness.call(harness.reset_client)
+    assert response.success, response.message
+    assert rig.drive.state is DriveState.OPERATION_ENABLED
+    harness.spin_until(lambda: abs(rig.actuator.rod_position_m - 0.004) < 5e-5, 2.0,
+                       'following after reset')
+    assert last_level(harness) == DiagnosticStatus.OK
+
+
+def test_drive_fault_stops_commanding_until_reset(running, rig):
+    harness = running
+    harness.follow(lambda t: (0.002, 0.0))
+    harness.spin_for(0.1)
+    rig.drive.inject_fault(0x7300)
+    harness.spin_until(lambda: running.node.mode is Mode.FAULTED, 1.0, 'fault latched')
+    harness.spin_until(lambda: last_level(harness) == DiagnosticStatus.ERROR, 1.0, 'ERROR')
+    assert '0x7300' in harness.diagnostics[-1].message
+    faulted_at = len(harness.rpdos)
+    harness.spin_for(0.2)
+    # One quick-stop frame at most after the fault, then silence.
+    assert all(cw == Controlword.QUICK_STOP for _, cw, _ in harness.rpdos[faulted_at - 1:])
+    assert len(harness.rpdos) - faulted_at <= 1
+    assert rig.drive.state is DriveState.FAULT
+    response = harness.call(harness.reset_client)
+    assert response.success, response.message
+    assert rig.drive.state is DriveState.OPERATION_ENABLED
+    harness.spin_until(lambda: abs(rig.actuator.rod_position_m - 0.002) < 5e-5, 2.0,
+                       'following after reset')
+
+
+def test_lost_heartbeat_latches_error(running, rig):
+    harness = running
+    rig.stop_ticking()
+    harness.spin_until(lambda: running.node.mode is Mode.FAULTED, 1.0, 'heartbeat lost')
+    assert 'HeartbeatLostError' in running.node.problem
+    assert not harness.call(harness.reset_client).success  # the drive is still silent
+
+
+def test_safe_stop_leaves_the_drive_disabled_at_zero_velocity(running, rig):
+    harness = running
+    harness.follow(lambda t: (0.003, 0.0))
+    harness.spin_until(lambda: rig.actuator.rod_position_m > 0.001, 2.0, 'moving')
+    harness.node.safe_stop()
+    assert rig.drive.state is DriveState.SWITCH_ON_DISABLED
+    harness.drain_sniffer()
+    assert [(cw, v) for _, cw, v in harness.rpdos[-2:]] == [
+        (Controlword.ENABLE_OPERATION, 0), (Controlword.DISABLE_VOLTAGE, 0)]
+    harness.node.safe_stop()  # idempotent
+    assert harness.node.mode is Mode.STOPPED
+
+
+def test_connects_to_a_drive_that_appears_later(harness, channel):
+    node = harness.start_node()
+    harness.spin_until(lambda: last_level(harness) == DiagnosticStatus.ERROR, 2.0,
+                       'ERROR while not connected')
+    assert node.mode is Mode.CONNECTING
+    late = TickedDrive(channel)
+    try:
+        harness.spin_until(lambda: node.mode is Mode.RUNNING, 5.0, 'connected')
+        assert late.drive.state is DriveState.OPERATION_ENABLED
+    finally:
+        harness.node.safe_stop()
+        late.shutdown()
+
+
+def test_gives_up_after_connect_timeout(harness):
+    harness.start_node('-p', 'connect_timeout_s:=0.3')
+    with pytest.raises(DriveConnectError, match='not connected after'):
+        harness.spin_for(3.0)
