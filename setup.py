@@ -14,6 +14,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 # that every entry is installed there, so keep it a plain literal list of strings.
 CONSOLE_SCRIPTS = [
     'flexure-ctrl = flexure_ctrl.cli.main:main',
+    'trajectory_generator = flexure_ctrl.nodes.trajectory_generator:main',
+    'inverse_solver = flexure_ctrl.nodes.inverse_solver:main',
+    'actuator_loop = flexure_ctrl.nodes.actuator_loop:main',
+    'tracker_bridge = flexure_ctrl.nodes.tracker_bridge:main',
 ]
 
 
