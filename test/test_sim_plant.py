@@ -66,3 +66,12 @@ def test_default_plant_misses_the_paper_path_by_the_papers_order(design, feedfor
     # Table 1 (uncorrected): max |e_x| 1.5-3 mm and max |e_y| 10-25 mm.
     assert 1.0e-3 <= np.abs(error[:, 0]).max() <= 4.0e-3
     assert 8.0e-3 <= np.abs(error[:, 1]).max() <= 25.0e-3
+
+
+def test_scalar_fast_path_matches_the_vectorised_one(design):
+    arm = SimulatedArm(design)
+    rng = np.random.default_rng(3)
+    pairs = rng.uniform(-0.045, 0.045, (50, 2))
+    vectorised = arm.end_point(pairs[:, 0], pairs[:, 1])
+    scalar = np.array([arm.end_point_at(a, b) for a, b in pairs])
+    np.testing.assert_allclose(scalar, vectorised, atol=1e-14)

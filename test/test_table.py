@@ -69,3 +69,10 @@ def test_evaluate_keeps_input_shape():
     table = CharacterisationTable(arc_table())
     pose, slope = table.evaluate(np.zeros((4, 5)))
     assert pose.shape == slope.shape == (4, 5, 3)
+
+
+def test_scalar_pose_matches_vectorised_and_clamps():
+    table = CharacterisationTable(arc_table())
+    l0 = np.linspace(-0.045, 0.045, 37)
+    np.testing.assert_allclose([table.pose_at(v) for v in l0], table.pose(l0), atol=1e-15)
+    assert table.pose_at(0.06) == table.pose_at(0.045)

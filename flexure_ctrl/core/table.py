@@ -12,6 +12,7 @@ one Horner pass), because the inverse solver evaluates the table tens of thousan
 times per path.
 """
 
+import bisect
 from typing import Tuple
 
 from flexure_ctrl.core.design import CharacterisationData
@@ -43,6 +44,10 @@ class CharacterisationTable:
         # interpolant.c is (power 3..0, segment, column); keep one contiguous row per
         # (column, power) so that evaluation gathers 1-D arrays.
         self._coefficients = np.ascontiguousarray(np.transpose(interpolant.c, (2, 0, 1)))
+        # Plain-Python copies for pose_at(): numpy costs microseconds per call on scalars.
+        self._knot_list = self.l0_knots_m.tolist()
+        self._coefficient_lists = [[row.tolist() for row in column]
+                                   for column in self._coefficients]
         self.l0_min_m = float(self.l0_knots_m[0])
         self.l0_max_m = float(self.l0_knots_m[-1])
 
@@ -75,6 +80,21 @@ class CharacterisationTable:
             values.append(((c3 * offset + c2) * offset + c1) * offset + c0)
             slopes.append((3.0 * c3 * offset + 2.0 * c2) * offset + c1)
         return (*values, *slopes)
+
+    def pose_at(self, l0_m: float) -> Tuple[float, float, float]:
+        """
+        Return the tip pose ``(x_f m, y_f m, theta_f rad)`` at one extension, fast.
+
+        The scalar path of a real-time caller (the simulator samples it at 500 Hz): no
+        numpy, and an extension outside the table is clamped to its ends.
+        """
+        knots = self._knot_list
+        l0 = min(max(float(l0_m), knots[0]), knots[-1])
+        segment = min(max(bisect.bisect_right(knots, l0) - 1, 0), len(knots) - 2)
+        offset = l0 - knots[segment]
+        x, y, theta = (((c3[segment] * offset + c2[segment]) * offset + c1[segment]) * offset
+                       + c0[segment] for c3, c2, c1, c0 in self._coefficient_lists)
+        return x, y, theta
 
     def evaluate(self, l0_m, check_range: bool = True) -> Tuple[np.ndarray, np.ndarray]:
         """

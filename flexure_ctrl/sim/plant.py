@@ -14,6 +14,7 @@ This plant has exactly those two differences from the design's table:
 """
 
 from dataclasses import dataclass, field
+import math
 from typing import Tuple
 
 from flexure_ctrl.core.design import Design
@@ -82,12 +83,27 @@ class SimulatedArm:
         *_, x_end, y_end = chain_points(self.design.geometry, x1, y1, theta1, x2, y2, theta2)
         return np.stack([x_end, y_end], axis=-1).reshape(shape + (2,))
 
-    def _sag(self, x1, y1, theta1, x2, y2, theta2):
+    def end_point_at(self, l01_m: float, l02_m: float) -> Tuple[float, float]:
+        """Return the true end point ``(x, y)`` (m) for one pair of rod positions, fast."""
+        x1, y1, theta1 = self.table.pose_at(l01_m)
+        x2, y2, theta2 = self.table.pose_at(l02_m)
+        p = self.parameters
+        theta1 = p.joint_scale[0] * theta1 + p.joint_offset_rad[0]
+        theta2 = p.joint_scale[1] * theta2 + p.joint_offset_rad[1]
+        if p.gravity_sag_scale:
+            sag1, sag2 = self._sag(x1, y1, theta1, x2, y2, theta2, trig=math)
+            theta1 -= sag1
+            theta2 -= sag2
+        *_, x_end, y_end = chain_points(self.design.geometry, x1, y1, theta1, x2, y2, theta2,
+                                        trig=math)
+        return x_end, y_end
+
+    def _sag(self, x1, y1, theta1, x2, y2, theta2, trig=np):
         """Extra bending of each joint under the links' weight (rad, downward positive)."""
         p = self.parameters
         geometry = self.design.geometry
         x_elbow, _, x_tip2, _, x_end, _ = chain_points(geometry, x1, y1, theta1, x2, y2,
-                                                       theta2)
+                                                       theta2, trig=trig)
         # Centres of mass halfway along each link.
         x_mass1 = 0.5 * (x1 + x_elbow)
         x_mass2 = 0.5 * (x_tip2 + x_end)
