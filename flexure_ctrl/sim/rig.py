@@ -1,0 +1,148 @@
+"""
+The simulated rig: drives on a socketcand CAN bus, the true arm, and a laser tracker.
+
+Two CiA 402 lead-screw drives sit on a socketcand CAN server, the true arm turns their
+rod positions into an end point, and a laser tracker streams that point over TCP, all
+on 127.0.0.1.
+
+Nodes reach it exactly as they reach the real rig, through python-can (``socketcand``
+instead of ``socketcan``) and a TCP socket: only their configuration differs.
+"""
+
+import threading
+import time
+from typing import Optional
+
+import can
+from flexure_ctrl.core.design import Design
+from flexure_ctrl.core.tracker import RigTransform
+from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
+from flexure_ctrl.sim.plant import PlantParameters, SimulatedArm
+from flexure_ctrl.sim.socketcand_server import SocketcandServer
+from flexure_ctrl.sim.tracker_server import TrackerServer
+import numpy as np
+
+LEAD_SCREW_KEYS = ('lag_s', 'max_speed_m_s', 'backlash_m', 'pot_noise_m', 'pot_quantum_m',
+                   'drift_m_per_s', 'end_stop_m')
+
+
+class SimulatedRig:
+    """
+    Everything behind the rig's protocols, started and stopped as one.
+
+    :param design: the design whose table the controller uses (the plant deviates from
+        it as the ``plant`` knobs say).
+    :param config: the simulator knobs (:func:`flexure_ctrl.sim.config.load_sim_config`).
+    """
+
+    def __init__(self, design: Design, config: dict):
+        self.design = design
+        self.config = config
+        seed = int(config['seed'])
+        self._rng = np.random.default_rng(seed)
+        plant = config['plant']
+        self.arm = SimulatedArm(design, PlantParameters(
+            gravity_sag_scale=float(plant['gravity_sag_scale']),
+            joint_offset_rad=tuple(plant['joint_offset_rad']),
+            joint_scale=tuple(plant['joint_scale']),
+            link_mass_kg=tuple(plant['link_mass_kg']),
+            joint_compliance_rad_per_n_m=tuple(plant['joint_compliance_rad_per_n_m'])))
+        network = config['network']
+        self._virtual_channel = f'flexure_sim_{id(self)}'
+        self.can_server = SocketcandServer(
+            self._virtual_channel, channel=network['can_channel'], host=network['host'],
+            port=int(network['can_port']))
+        drives = config['drives']
+        screw = LeadScrewParameters(**{key: float(drives[key]) for key in LEAD_SCREW_KEYS})
+        self._buses = []
+        self.actuators = []
+        self.drives = []
+        for node_id in drives['node_ids']:
+            bus = can.Bus(interface='virtual', channel=self._virtual_channel)
+            actuator = LeadScrewActuator(screw, np.random.default_rng(self._rng.integers(2**32)))
+            self._buses.append(bus)
+            self.actuators.append(actuator)
+            self.drives.append(SimulatedDrive(
+                bus, int(node_id), actuator, counts_per_m=float(drives['counts_per_m']),
+                heartbeat_period_s=float(drives['heartbeat_period_s']),
+                rpdo_timeout_s=float(drives['rpdo_timeout_s']),
+                tpdo_period_s=float(drives['tpdo_period_s'])))
+        tracker = config['tracker']
+        rig_from_tracker = RigTransform(rotation_rpy_rad=tuple(tracker['rotation_rpy_rad']),
+                                        translation_m=tuple(tracker['translation_m']))
+        self.targets = list(tracker['targets'])
+        self.tracker_server = TrackerServer(
+            self._sample_targets, rate_hz=float(tracker['rate_hz']),
+            noise_m=float(tracker['noise_m']),
+            dropout_probability=float(tracker['dropout_probability']),
+            to_tracker=rig_from_tracker.inverse(),
+            rng=np.random.default_rng(self._rng.integers(2**32)),
+            host=network['host'], port=int(network['tracker_port']))
+        self._period_s = 1.0 / float(config['physics_rate_hz'])
+        self._stop = threading.Event()
+        self._physics: Optional[threading.Thread] = None
+        self._shut_down = False
+
+    def true_end_point(self) -> tuple:
+        """Return the true end point now, ``(x, y)`` (m, rig frame), from the true rods."""
+        return self.arm.end_point_at(self.actuators[0].rod_position_m,
+                                     self.actuators[1].rod_position_m)
+
+    def _sample_targets(self, now_ns: int) -> dict:
+        x_m, y_m = self.true_end_point()
+        return {'end': (x_m, y_m, 0.0)}
+
+    def start(self) -> 'SimulatedRig':
+        """Start the CAN server, the drives' physics and the tracker stream."""
+        self.can_server.start()
+        self._physics = threading.Thread(target=self._run_physics, name='sim-physics',
+                                         daemon=True)
+        self._physics.start()
+        self.tracker_server.start()
+        return self
+
+    @property
+    def can_port(self) -> int:
+        return self.can_server.port
+
+    @property
+    def tracker_port(self) -> int:
+        return self.tracker_server.port
+
+    def _run_physics(self) -> None:
+        # Absolute deadlines keep the mean rate exact however long one step takes.
+        next_s = time.monotonic()
+        last_s = next_s
+        while not self._stop.is_set():
+            now_s = time.monotonic()
+            dt_s = now_s - last_s
+            last_s = now_s
+            for drive in self.drives:
+                drive.tick(now_s, dt_s)
+            next_s += self._period_s
+            delay_s = next_s - time.monotonic()
+            if delay_s > 0:
+                self._stop.wait(delay_s)
+            elif delay_s < -0.1:
+                next_s = time.monotonic()  # fell far behind: do not try to catch up
+
+    def shutdown(self) -> None:
+        """Stop everything; idempotent."""
+        if self._shut_down:
+            return
+        self._shut_down = True
+        self._stop.set()
+        self.tracker_server.shutdown()
+        if self._physics is not None:
+            self._physics.join(timeout=2.0)
+        for drive in self.drives:
+            drive.shutdown()
+        for bus in self._buses:
+            bus.shutdown()
+        self.can_server.shutdown()
+
+    def __enter__(self) -> 'SimulatedRig':
+        return self.start()
+
+    def __exit__(self, *exc_info) -> None:
+        self.shutdown()
