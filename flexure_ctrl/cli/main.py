@@ -5,7 +5,8 @@ import sys
 from typing import Optional, Sequence
 
 from flexure_ctrl import __version__
-from flexure_ctrl.cli import demo_command, designs_command, solve_command
+from flexure_ctrl.cli import (demo_command, designs_command, sim_command, solve_command,
+                              up_command)
 from flexure_ctrl.core.errors import FlexureCtrlError
 
 
@@ -16,7 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
                     'arm (Bailey, Lusty & Keogh).')
     parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     commands = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
-    for module in (demo_command, solve_command, designs_command):
+    for module in (up_command, sim_command, demo_command, solve_command, designs_command):
         module.add_parser(commands)
     return parser
 
