@@ -116,3 +116,28 @@ def test_seed_alone_is_not_the_answer(arm, paper_path_points):
     seeds = solver.seed(paper_path_points)
     assert residual_m(arm, seeds, paper_path_points).max() > 1e-8
     assert residual_m(arm, solver.solve(paper_path_points), paper_path_points).max() <= 1e-8
+
+
+def test_streaming_point_solver_matches_the_batch_solver(arm, paper_path_points):
+    solver = InverseSolver(arm)
+    points = paper_path_points[::50]
+    batch = solver.solve(points)
+    previous = None
+    for point, expected in zip(points, batch):
+        l01, l02, _, _ = solver.solve_point(point[0], point[1], previous)
+        np.testing.assert_allclose([l01, l02], expected, atol=1e-8)
+        previous = (l01, l02)
+
+
+def test_streaming_point_solver_maps_velocity_through_the_jacobian(arm):
+    solver = InverseSolver(arm)
+    l01, l02, dl01, dl02 = solver.solve_point(1.015, 0.1, (0.01, -0.03), (0.0, -0.05))
+    _, jacobian, _ = arm.forward_with_jacobian(l01, l02)
+    np.testing.assert_allclose(jacobian @ [dl01, dl02], [0.0, -0.05], atol=1e-9)
+
+
+def test_streaming_point_solver_still_refuses_unreachable_points(arm):
+    solver = InverseSolver(arm)
+    start = solver.solve_point(1.015, 0.0)[:2]
+    with pytest.raises(UnreachablePointError):
+        solver.solve_point(1.3, 0.0, start)

@@ -19,7 +19,8 @@ to the right. Because the solution on one branch is unique inside the stroke box
 solution along a continuous path is continuous, with no jumps between branches.
 """
 
-from typing import Optional
+import math
+from typing import Optional, Tuple
 
 from flexure_ctrl.core.errors import UnreachablePointError
 from flexure_ctrl.core.kinematics import branch_of_components, branch_sign, TwoLinkArm
@@ -158,6 +159,45 @@ class InverseSolver:
         for index in np.flatnonzero(~converged):
             extensions[index] = self._retry(index, flat[index])
         return extensions.reshape(points.shape)
+
+    def solve_point(self, x_m: float, y_m: float, initial_m: Optional[Tuple[float, float]] = None,
+                    velocity_m_s: Tuple[float, float] = (0.0, 0.0)) -> Tuple[float, ...]:
+        """
+        Solve one point warm-started from ``initial_m``: the streaming fast path.
+
+        A few scalar Newton steps (no numpy) from the previous solution; if they do not
+        converge on the branch inside the stroke, :meth:`solve` decides (and raises
+        :class:`UnreachablePointError` for a point that cannot be reached).
+
+        :param velocity_m_s: end-point velocity ``(dx/dt, dy/dt)`` to map to the actuators.
+        :returns: ``(l01 m, l02 m, dl01/dt m/s, dl02/dt m/s)``.
+        """
+        limit = self.stroke_limit_m
+        if initial_m is not None and all(math.isfinite(v) for v in (x_m, y_m)):
+            l01, l02 = (min(max(float(v), -limit), limit) for v in initial_m)
+            for _ in range(8):
+                x_end, y_end, j11, j12, j21, j22, x_elbow, y_elbow = \
+                    self.arm.point_components(l01, l02)
+                rx, ry = x_end - x_m, y_end - y_m
+                det = j11 * j22 - j12 * j21
+                if rx * rx + ry * ry <= self.tolerance_m ** 2:
+                    on_branch = (x_end * y_elbow - y_end * x_elbow >= 0.0) == (self.sign > 0)
+                    if on_branch and det != 0.0:
+                        vx, vy = velocity_m_s
+                        return (l01, l02, (j22 * vx - j12 * vy) / det,
+                                (j11 * vy - j21 * vx) / det)
+                    break
+                if det == 0.0:
+                    break
+                step1 = -(j22 * rx - j12 * ry) / det
+                step2 = -(j11 * ry - j21 * rx) / det
+                scale = min(1.0, MAX_NEWTON_STEP_M / max(math.hypot(step1, step2), 1e-300))
+                l01 = min(max(l01 + scale * step1, -limit), limit)
+                l02 = min(max(l02 + scale * step2, -limit), limit)
+        l01, l02 = self.solve(np.array([x_m, y_m]))
+        _, jacobian, _ = self.arm.forward_with_jacobian(l01, l02)
+        dl01, dl02 = np.linalg.solve(jacobian, np.asarray(velocity_m_s, dtype=float))
+        return float(l01), float(l02), float(dl01), float(dl02)
 
     def _newton(self, targets: np.ndarray, extensions: np.ndarray):
         """Damped Newton on all points at once; returns (extensions, converged mask)."""

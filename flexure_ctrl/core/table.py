@@ -96,6 +96,25 @@ class CharacterisationTable:
                        + c0[segment] for c3, c2, c1, c0 in self._coefficient_lists)
         return x, y, theta
 
+    def pose_and_slope_at(self, l0_m: float) -> Tuple[float, ...]:
+        """
+        Return ``(x_f, y_f, theta_f, dx_f, dy_f, dtheta_f)`` at one extension, fast.
+
+        Like :meth:`pose_at` (no numpy, clamped to the table), with the derivatives
+        with respect to extension (m/m, m/m, rad/m).
+        """
+        knots = self._knot_list
+        l0 = min(max(float(l0_m), knots[0]), knots[-1])
+        segment = min(max(bisect.bisect_right(knots, l0) - 1, 0), len(knots) - 2)
+        offset = l0 - knots[segment]
+        values = []
+        slopes = []
+        for c3, c2, c1, c0 in self._coefficient_lists:
+            a3, a2, a1 = c3[segment], c2[segment], c1[segment]
+            values.append(((a3 * offset + a2) * offset + a1) * offset + c0[segment])
+            slopes.append((3.0 * a3 * offset + 2.0 * a2) * offset + a1)
+        return (*values, *slopes)
+
     def evaluate(self, l0_m, check_range: bool = True) -> Tuple[np.ndarray, np.ndarray]:
         """
         Tip pose and its derivative with respect to extension.

@@ -5,6 +5,7 @@ Each command point is solved with the core's look-up-table inverse, warm-started
 the previous solution, and published as a ``JointState`` (``actuator_1``,
 ``actuator_2``; position in m, velocity in m/s). The velocity is the Jacobian inverse
 applied to the command's velocity (finite difference of successive command points).
+Streaming uses the solver's scalar warm-started path (tens of microseconds a point).
 When the planned command path arrives, the whole path is solved ahead, so an
 unreachable path is reported before the arm moves. A point outside the workspace or the
 stroke is reported on ``/diagnostics`` and in the log, and never sent.
@@ -34,8 +35,8 @@ class InverseSolverNode(Node):
         super().__init__('inverse_solver', **kwargs)
         self.design = declare_design(self)
         self.solver = InverseSolver.from_design(self.design)
-        self._previous: Optional[np.ndarray] = None
-        self._previous_point: Optional[np.ndarray] = None
+        self._previous: Optional[tuple] = None
+        self._previous_point: Optional[tuple] = None
         self._previous_stamp_ns: Optional[int] = None
         self.solved = 0
         self.refused = 0
@@ -75,10 +76,16 @@ class InverseSolverNode(Node):
         self._publish_diagnostics()
 
     def _on_command(self, message: PointStamped) -> None:
-        point = np.array([message.point.x, message.point.y])
+        x_m, y_m = message.point.x, message.point.y
         stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+        velocity_m_s = (0.0, 0.0)
+        if self._previous_point is not None and stamp_ns > self._previous_stamp_ns:
+            elapsed_s = (stamp_ns - self._previous_stamp_ns) * 1e-9
+            velocity_m_s = ((x_m - self._previous_point[0]) / elapsed_s,
+                            (y_m - self._previous_point[1]) / elapsed_s)
         try:
-            extensions = self.solver.solve(point, initial_m=self._previous)
+            l01, l02, dl01, dl02 = self.solver.solve_point(x_m, y_m, self._previous,
+                                                           velocity_m_s)
         except UnreachablePointError as error:
             self.refused += 1
             self.last_problem = str(error).replace('end point #0 ', 'command point ')
@@ -87,19 +94,12 @@ class InverseSolverNode(Node):
             self._previous_point = None
             self._publish_diagnostics()
             return
-        velocity = np.zeros(2)
-        if self._previous_point is not None and stamp_ns > self._previous_stamp_ns:
-            point_velocity = (point - self._previous_point) / (
-                (stamp_ns - self._previous_stamp_ns) * 1e-9)
-            _, jacobian, _ = self.solver.arm.forward_with_jacobian(extensions[0],
-                                                                   extensions[1])
-            velocity = np.linalg.solve(jacobian, point_velocity)
-        self._previous = extensions
-        self._previous_point = point
+        self._previous = (l01, l02)
+        self._previous_point = (x_m, y_m)
         self._previous_stamp_ns = stamp_ns
         self._setpoint.header.stamp = message.header.stamp
-        self._setpoint.position = [float(extensions[0]), float(extensions[1])]
-        self._setpoint.velocity = [float(velocity[0]), float(velocity[1])]
+        self._setpoint.position = [l01, l02]
+        self._setpoint.velocity = [dl01, dl02]
         self.setpoint_publisher.publish(self._setpoint)
         self.solved += 1
         self.last_problem = ''
