@@ -30,6 +30,10 @@ from scipy.spatial import cKDTree
 
 DEFAULT_TOLERANCE_M = 1e-9
 MAX_NEWTON_STEP_M = 5e-3
+# A Newton step this short is the last one needed: convergence is quadratic, so the
+# residual after it is about |J| * C * step**2 with C ~ 1/(table length scale) ~ 20 1/m
+# here, i.e. ~1e-10 m. Accepting it saves a whole forward evaluation per solve.
+FINAL_STEP_M = 1e-6
 # A least-squares retry that ends farther than this from the point has failed.
 REACHABLE_RESIDUAL_M = 1e-8
 
@@ -97,7 +101,10 @@ class InverseSolver:
         nodes = np.stack(np.meshgrid(xs, ys, indexing='ij'), axis=-1).reshape(-1, 2)
         solution, converged = self._newton(nodes, self._tree_seed(nodes))
         solution[~converged] = np.nan
-        self._map = solution.reshape(points_per_axis, points_per_axis, 2)
+        # Flat, one column per actuator: seed() gathers with 1-D indices.
+        self._map_points = points_per_axis
+        self._map_l01 = np.ascontiguousarray(solution[:, 0])
+        self._map_l02 = np.ascontiguousarray(solution[:, 1])
 
     @classmethod
     def from_design(cls, design, **kwargs) -> 'InverseSolver':
@@ -118,17 +125,26 @@ class InverseSolver:
         nodes are reachable; otherwise the nearest grid configuration on the branch.
         """
         points = np.asarray(points_m, float).reshape(-1, 2)
-        scaled = (points - self._map_origin) / self._map_step
-        cell = np.floor(scaled).astype(np.intp)
-        inside = np.all((cell >= 0) & (cell < self._map_cells), axis=1)
-        np.clip(cell, 0, self._map_cells - 1, out=cell)
-        fraction = scaled - cell
-        i, j = cell[:, 0], cell[:, 1]
-        fx, fy = fraction[:, :1], fraction[:, 1:]
-        grid = self._map
-        seeds = ((1 - fx) * ((1 - fy) * grid[i, j] + fy * grid[i, j + 1])
-                 + fx * ((1 - fy) * grid[i + 1, j] + fy * grid[i + 1, j + 1]))
-        fallback = ~inside | np.any(np.isnan(seeds), axis=1)
+        scaled_x = (points[:, 0] - self._map_origin[0]) / self._map_step[0]
+        scaled_y = (points[:, 1] - self._map_origin[1]) / self._map_step[1]
+        i = np.floor(scaled_x).astype(np.intp)
+        j = np.floor(scaled_y).astype(np.intp)
+        inside = (i >= 0) & (i < self._map_cells) & (j >= 0) & (j < self._map_cells)
+        np.clip(i, 0, self._map_cells - 1, out=i)
+        np.clip(j, 0, self._map_cells - 1, out=j)
+        fx = scaled_x - i
+        fy = scaled_y - j
+        corner = i * self._map_points + j
+        w00 = (1.0 - fx) * (1.0 - fy)
+        w01 = (1.0 - fx) * fy
+        w10 = fx * (1.0 - fy)
+        w11 = fx * fy
+        seeds = np.empty_like(points)
+        for column, grid in ((0, self._map_l01), (1, self._map_l02)):
+            seeds[:, column] = (w00 * grid.take(corner) + w01 * grid.take(corner + 1)
+                                + w10 * grid.take(corner + self._map_points)
+                                + w11 * grid.take(corner + self._map_points + 1))
+        fallback = ~inside | np.isnan(seeds[:, 0]) | np.isnan(seeds[:, 1])
         if np.any(fallback):
             seeds[fallback] = self._tree_seed(points[fallback])
         return seeds
@@ -213,26 +229,34 @@ class InverseSolver:
             x_end, y_end, j11, j12, j21, j22, x_elbow, y_elbow = self.arm.components(l01, l02)
             rx = x_end - x_target
             ry = y_end - y_target
-            done = (rx * rx + ry * ry <= self.tolerance_m ** 2)
-            done &= branch_of_components(x_end, y_end, x_elbow, y_elbow) == self.sign
-            if np.any(done):
-                converged[active[done]] = True
-                extensions[active[done], 0] = l01[done]
-                extensions[active[done], 1] = l02[done]
-                keep = ~done
-                active = active[keep]
-                l01, l02, x_target, y_target = l01[keep], l02[keep], x_target[keep], y_target[keep]
-                rx, ry, j11, j12, j21, j22 = (a[keep] for a in (rx, ry, j11, j12, j21, j22))
+            on_branch = branch_of_components(x_end, y_end, x_elbow, y_elbow) == self.sign
+            done = (rx * rx + ry * ry <= self.tolerance_m ** 2) & on_branch
+            if iteration < self.max_iterations:
+                det = j11 * j22 - j12 * j21
+                det = np.where(np.abs(det) < 1e-300, 1e-300, det)
+                step1 = -(j22 * rx - j12 * ry) / det
+                step2 = -(j11 * ry - j21 * rx) / det
+                length = np.hypot(step1, step2)
+                scale = np.minimum(1.0, MAX_NEWTON_STEP_M / np.maximum(length, 1e-300))
+                next1 = np.clip(l01 + scale * step1, -limit, limit)
+                next2 = np.clip(l02 + scale * step2, -limit, limit)
+                final = ~done & on_branch & (length <= FINAL_STEP_M)
+                final &= (np.abs(next1) < limit) & (np.abs(next2) < limit)
+                l01 = np.where(final, next1, l01)
+                l02 = np.where(final, next2, l02)
+                done |= final
+            else:
+                next1, next2 = l01, l02
+            converged[active[done]] = True
+            extensions[active[done], 0] = l01[done]
+            extensions[active[done], 1] = l02[done]
+            keep = ~done
+            active = active[keep]
             if active.size == 0 or iteration == self.max_iterations:
+                l01, l02 = l01[keep], l02[keep]
                 break
-            det = j11 * j22 - j12 * j21
-            det = np.where(np.abs(det) < 1e-300, 1e-300, det)
-            step1 = -(j22 * rx - j12 * ry) / det
-            step2 = -(j11 * ry - j21 * rx) / det
-            scale = np.minimum(1.0, MAX_NEWTON_STEP_M / np.maximum(np.hypot(step1, step2),
-                                                                   1e-300))
-            l01 = np.clip(l01 + scale * step1, -limit, limit)
-            l02 = np.clip(l02 + scale * step2, -limit, limit)
+            l01, l02 = next1[keep], next2[keep]
+            x_target, y_target = x_target[keep], y_target[keep]
         extensions[active, 0] = l01
         extensions[active, 1] = l02
         return extensions, converged
