@@ -96,6 +96,8 @@ class Harness:
         self.reset_client = self.helper.create_client(Trigger, f'/{ACTUATOR}/reset')
         self.quick_stop_client = self.helper.create_client(Trigger, f'/{ACTUATOR}/quick_stop')
 
+    stamp_age_s = 0.0  # how old the published setpoints are made to look
+
     def follow(self, setpoint: Optional[Callable[[float], Tuple[float, float]]]) -> None:
         """Publish ``setpoint(t)`` (m, m/s) at 100 Hz from now on, t from now (s)."""
         self._setpoint_origin_s = time.monotonic()
@@ -114,7 +116,8 @@ class Harness:
             return
         position_m, velocity_m_s = self.setpoint(time.monotonic() - self._setpoint_origin_s)
         message = JointState()
-        message.header.stamp = self.helper.get_clock().now().to_msg()
+        stamp_ns = self.helper.get_clock().now().nanoseconds - int(self.stamp_age_s * 1e9)
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp_ns, 10**9)
         # The other actuator's entry comes first and must be ignored.
         message.name = ['actuator_2', ACTUATOR]
         message.position = [-0.03, position_m]
@@ -250,6 +253,19 @@ def test_follows_setpoints_and_publishes_state(running, rig):
     assert math.isfinite(median_ms) and math.isfinite(p99_ms)
     median, p99 = running.node.loop_period_stats_ms()
     print(f'\nloop period at 500 Hz in-process: median {median:.3f} ms, p99 {p99:.3f} ms')
+
+
+def test_setpoints_that_arrive_stale_never_move_the_drive(running, rig):
+    harness = running
+    # Stamped 2 s ago, as if delivered late: older than this fixture's 1 s watchdog.
+    harness.stamp_age_s = 2.0
+    harness.follow(lambda t: (0.005, 0.0))
+    harness.spin_until(lambda: harness.node.setpoints_stale > 20, 4.0, 'stale setpoints')
+    assert abs(rig.actuator.rod_position_m) < 2e-4  # backlash and noise, no motion
+    assert harness.node.setpoints_received == 0
+    harness.stamp_age_s = 0.0
+    harness.spin_until(lambda: abs(rig.actuator.rod_position_m - 0.005) < 1e-4, 4.0,
+                       'fresh setpoints followed')
 
 
 def test_parameters_out_of_range_are_rejected_at_set_time(running):

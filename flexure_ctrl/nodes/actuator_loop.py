@@ -137,7 +137,9 @@ class ActuatorLoop(Node):
                                  max_accel_m_s2=self._double('watchdog_decel_m_s2'))
         self.loop = ProportionalLoop(self._double('gain_per_s'),
                                      self._double('velocity_feedforward'), self.limits)
+        self._age_from_stamp = self.get_parameter('setpoint_age_from_stamp').value
         watchdog_timeout_s = self._double('watchdog_timeout_s')
+        self._watchdog_timeout_ns = int(watchdog_timeout_s * _NS_PER_S)
         self.watchdog = SetpointWatchdog.from_limits(watchdog_timeout_s, self.limits)
         # Extrapolate over a few setpoint periods at most, and never past the watchdog:
         # a stalled stream must not carry the setpoint far along its last velocity.
@@ -160,6 +162,7 @@ class ActuatorLoop(Node):
         self._stop_loop = threading.Event()
         self.setpoints_received = 0
         self.setpoints_rejected = 0
+        self.setpoints_stale = 0
         self.cycles = 0
         self.overruns = 0
         self._last_tick_ns = 0
@@ -242,6 +245,10 @@ class ActuatorLoop(Node):
         self.declare_parameter('heartbeat_timeout_s', 0.5, float_descriptor(
             'largest gap (s) between drive heartbeats (and position TPDOs)', 0.01, 10.0,
             read_only=True))
+        self.declare_parameter('setpoint_age_from_stamp', True, typed_descriptor(
+            ParameterType.PARAMETER_BOOL,
+            'judge the age of a setpoint by its header stamp (all nodes share one clock), so one '
+            'delivered late counts as old; false: by its arrival', read_only=True))
         self.declare_parameter('realtime_priority', 0, int_descriptor(
             'SCHED_FIFO priority of the loop thread (1-98; 0: ordinary scheduling). Needs '
             'CAP_SYS_NICE or an rtprio limit; without it the node warns and runs anyway',
@@ -523,10 +530,20 @@ class ActuatorLoop(Node):
         if not (math.isfinite(position_m) and math.isfinite(velocity_m_s)):
             self.setpoints_rejected += 1  # not fresh: the watchdog keeps counting
             return
+        age_ns = 0
+        if self._age_from_stamp:
+            stamp_ns = message.header.stamp.sec * _NS_PER_S + message.header.stamp.nanosec
+            if stamp_ns:
+                age_ns = max(0, time.time_ns() - stamp_ns)
         with self._lock:
-            now_ns = time.monotonic_ns()
-            self.hold.update(position_m, velocity_m_s, now_ns)
-            self.watchdog.feed(now_ns)
+            if age_ns > self._watchdog_timeout_ns:
+                # Delivered (or processed) too late to be fresh: it must not restart motion.
+                self.setpoints_stale += 1
+                return
+            # Back-date to when it was made, on the monotonic clock the loop uses.
+            made_ns = time.monotonic_ns() - age_ns
+            self.hold.update(position_m, velocity_m_s, made_ns)
+            self.watchdog.feed(made_ns)
             self.setpoints_received += 1
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
@@ -622,6 +639,7 @@ class ActuatorLoop(Node):
                  f'{self.watchdog.setpoint_age_s(time.monotonic_ns()):.3f}'),
                 ('setpoints received', str(self.setpoints_received)),
                 ('setpoints rejected', str(self.setpoints_rejected)),
+                ('setpoints stale', str(self.setpoints_stale)),
                 ('setpoint clamps', str(self.loop.clamp_count)),
                 ('last emergency', f'0x{client.emergencies[-1][1].error_code:04X}'
                  if client and client.emergencies else 'none'),
