@@ -6,6 +6,7 @@ watches them from its own node on the test's private domain (loopback only), run
 short version of the paper's path, and checks what the tracker saw.
 """
 
+import json
 import os
 import re
 import signal
@@ -239,3 +240,19 @@ def test_actuators_stop_within_the_watchdog_time_when_setpoints_die(rig_factory)
     assert rig.spin_until(lambda: any(
         stamp_s(m) > resumed_s and m.velocity[0] != 0.0 for _, m in state_1[-100:]), 10.0)
     assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
+
+
+def test_demo_runs_the_path_and_reports_table_1_quantities(tmp_path):
+    out = tmp_path / 'demo'
+    result = subprocess.run(
+        [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--period', '5', '--quiet',
+         '--out', str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        timeout=240, env=os.environ)
+    assert result.returncode == 0, result.stdout[-3000:]
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['points'] > 0.5 * 500 * 5
+    assert 0.5 < summary['max_abs_error_x_mm'] < 8.0
+    assert 5.0 < summary['max_abs_error_y_mm'] < 50.0
+    assert summary['rms_error_y_mm'] < summary['max_abs_error_y_mm']
+    assert (out / 'demo.png').stat().st_size > 10_000
+    assert 'max |e| (mm)' in result.stdout
