@@ -28,13 +28,13 @@ UP_TIMEOUT_S = 120.0
 def add_parser(commands) -> None:
     parser = commands.add_parser(
         'demo', help="run the paper's path on the simulated rig and report the errors",
-        description="Start the simulated rig and all nodes (flexure-ctrl up --sim), run the "
+        description='Start the simulated rig and all nodes (flexure-ctrl up --sim), run the '
                     "paper's path once (x = 1015 mm, y = +-200 mm sine), record the end point "
                     'from the laser tracker, stop everything, and print the maximum and RMS '
                     'errors in x and y; writes summary.json and demo.png to --out.')
     parser.add_argument('--design', default='cfa', help='design name (default: %(default)s)')
     parser.add_argument('--period', type=float, default=14.0, metavar='S',
-                        help='period of the path in s (default: %(default)s, the paper\'s)')
+                        help='period of the path in s (default: %(default)s, as in the paper)')
     parser.add_argument('--sim-config', type=Path, metavar='FILE',
                         help='simulator knobs overriding config/simulator.yaml')
     parser.add_argument('--out', type=Path, default=Path('out/demo'), metavar='DIR',
