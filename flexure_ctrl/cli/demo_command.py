@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 
-from flexure_ctrl.core.trajectory import SinePath
+from flexure_ctrl.core.alignment import align
 import numpy as np
 
 LEAD_IN_S = 2.5
@@ -77,7 +77,15 @@ class _Watcher:
             pass
 
     def start_run(self) -> bool:
+        """Start the path once the loops and the solver are connected (discovery lags)."""
         from std_srvs.srv import Trigger
+        deadline = time.monotonic() + 30.0
+        while not (self.node.count_subscribers('/flexure/actuator_setpoints') >= 2
+                   and self.node.count_publishers('/flexure/actuator_setpoints') >= 1
+                   and self.node.count_subscribers('/flexure/command') >= 1):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
         client = self.node.create_client(Trigger, '/trajectory_generator/start')
         if not client.wait_for_service(timeout_sec=30.0):
             return False
@@ -147,14 +155,9 @@ def report(arguments, demand, tracked) -> int:
         print('flexure-ctrl demo: no demand or no tracker points were received',
               file=sys.stderr)
         return 1
-    path = SinePath(period_s=arguments.period)
-    path_start_s = _stamp_s(demand[0]) + LEAD_IN_S
-    t_s = np.array([_stamp_s(m) for m in tracked]) - path_start_s
-    on_path = (t_s >= 0.0) & (t_s <= path.duration_s)
-    t_s = t_s[on_path]
-    realised = np.array([[m.point.x, m.point.y] for m in tracked])[on_path]
-    desired, _ = path.sample(t_s)
-    error = desired - realised
+    run = align([_stamp_s(m) for m in demand], [[m.point.x, m.point.y] for m in demand],
+                [_stamp_s(m) for m in tracked], [[m.point.x, m.point.y] for m in tracked])
+    t_s, desired, realised, error = run.t_s, run.desired_m, run.realised_m, run.error_m
     summary = {
         'design': arguments.design, 'period_s': arguments.period, 'points': int(len(t_s)),
         'max_abs_error_x_mm': float(np.abs(error[:, 0]).max() * 1e3),
