@@ -51,7 +51,7 @@ from flexure_ctrl.core.ploop import FirstOrderHold, LoopLimits, ProportionalLoop
 from flexure_ctrl.core.ploop import SetpointWatchdog
 from flexure_ctrl.nodes.common import ACTUATOR_NAMES, actuator_state_topic, DIAGNOSTICS_TOPIC
 from flexure_ctrl.nodes.common import float_descriptor, int_descriptor, run_node
-from flexure_ctrl.nodes.common import SETPOINTS_TOPIC, typed_descriptor
+from flexure_ctrl.nodes.common import RCLError, SETPOINTS_TOPIC, typed_descriptor
 import numpy as np
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
@@ -162,6 +162,7 @@ class ActuatorLoop(Node):
         self._stop_loop = threading.Event()
         self.setpoints_received = 0
         self.setpoints_rejected = 0
+        self._publishing = True
         self.setpoints_stale = 0
         self.cycles = 0
         self.overruns = 0
@@ -373,7 +374,7 @@ class ActuatorLoop(Node):
         self.problem = ''
         self.watchdog.reset()
         self._last_tick_ns = 0
-        self._diagnostics_guard.trigger()
+        self._notify_diagnostics()
 
     # ------------------------------------------------------------------ the loop
 
@@ -391,7 +392,7 @@ class ActuatorLoop(Node):
                 with self._lock:
                     self.mode = Mode.FAULTED
                     self.problem = 'the loop thread stopped on an unexpected error'
-                self._diagnostics_guard.trigger()
+                self._notify_diagnostics()
 
     def _set_realtime_priority(self) -> None:
         """Give this (the loop) thread SCHED_FIFO if asked; other threads keep theirs."""
@@ -479,7 +480,13 @@ class ActuatorLoop(Node):
         state.header.stamp.nanosec = stamp_ns % _NS_PER_S
         state.position[0] = measured_m
         state.velocity[0] = client.commanded_velocity_m_s
-        self.state_publisher.publish(state)
+        if self._publishing:
+            try:
+                self.state_publisher.publish(state)
+            except RCLError:
+                # Ctrl-C or SIGTERM invalidated the context before safe_stop() ended
+                # this thread: keep commanding the drive until then, stop publishing.
+                self._publishing = False
         self.cycles += 1
         # State changes only: logged and reported once, not every cycle.
         if loop.setpoint_clamped is not self._clamping:
@@ -494,7 +501,7 @@ class ActuatorLoop(Node):
                     f'no setpoint for {watchdog.timeout_s} s: ramping to zero velocity')
             else:
                 self.get_logger().info('fresh setpoints: following them')
-            self._diagnostics_guard.trigger()
+            self._notify_diagnostics()
 
     def _trip(self, error: Exception) -> None:
         """Latch a fault (lock held): one quick-stop frame, then no commands until reset."""
@@ -505,7 +512,7 @@ class ActuatorLoop(Node):
             self.client.quick_stop()
         except (can.CanError, OSError) as send_error:
             self.get_logger().error(f'could not send the quick stop: {send_error}')
-        self._diagnostics_guard.trigger()
+        self._notify_diagnostics()
 
     def _latch_quick_stop(self) -> None:
         """Quick-stop the drive and latch (lock held)."""
@@ -513,7 +520,7 @@ class ActuatorLoop(Node):
         self.problem = 'quick stop requested; call ~/reset to re-enable'
         self.client.quick_stop()
         self.get_logger().warning('quick stop: drive stopped, latched until ~/reset')
-        self._diagnostics_guard.trigger()
+        self._notify_diagnostics()
 
     # ------------------------------------------------------------------ inputs
 
@@ -562,7 +569,7 @@ class ActuatorLoop(Node):
             except (DriveError, can.CanError, OSError) as error:
                 self.problem = f'reset failed: {type(error).__name__}: {error}'
                 self.get_logger().error(self.problem)
-                self._diagnostics_guard.trigger()
+                self._notify_diagnostics()
                 response.success, response.message = False, self.problem
                 return response
             self._quick_stop_requested = False
@@ -607,6 +614,13 @@ class ActuatorLoop(Node):
             return math.nan, math.nan
         median, p99 = np.percentile(periods_ns / 1e6, (50.0, 99.0))
         return float(median), float(p99)
+
+    def _notify_diagnostics(self) -> None:
+        """Ask the executor to publish diagnostics now (from any thread)."""
+        try:
+            self._diagnostics_guard.trigger()
+        except RCLError:
+            pass  # the context is shutting down; safe_stop() reports the rest
 
     def publish_diagnostics(self) -> None:
         """Publish the node's status on ``/diagnostics``."""
