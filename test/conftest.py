@@ -1,12 +1,16 @@
 """
-Shared fixtures: an analytic flexure table that the core tests can reason about.
+Shared fixtures: an analytic flexure table, and a simulated drive ticking in real time.
 
 Any ROS process a test starts talks to loopback only, on a domain of its own.
 """
 
 import os
+import threading
+import time
 
+import can
 from flexure_ctrl.core.design import CharacterisationData, Design, LinkGeometry
+from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
 import numpy as np
 import pytest
 
@@ -40,3 +44,34 @@ def arc_design(branch='above', geometry=None, **table_kwargs):
 @pytest.fixture
 def design():
     return arc_design()
+
+
+class TickedDrive:
+    """A SimulatedDrive on its own virtual bus, ticked from a thread in real time."""
+
+    def __init__(self, channel: str, node_id: int, lag_s: float, seed: int,
+                 **drive_kwargs) -> None:
+        self.bus = can.Bus(interface='virtual', channel=channel)
+        parameters = LeadScrewParameters(lag_s=lag_s, backlash_m=0.0, pot_noise_m=0.0)
+        self.actuator = LeadScrewActuator(parameters, np.random.default_rng(seed))
+        self.drive = SimulatedDrive(self.bus, node_id, self.actuator, **drive_kwargs)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        last_s = time.monotonic()
+        while not self._stop.is_set():
+            now_s = time.monotonic()
+            self.drive.tick(now_s, now_s - last_s)
+            last_s = now_s
+            self._stop.wait(0.001)  # pacing of the simulated drive, ~1 kHz
+
+    def stop_ticking(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+
+    def shutdown(self) -> None:
+        self.stop_ticking()
+        self.drive.shutdown()
+        self.bus.shutdown()

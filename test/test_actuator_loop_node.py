@@ -9,12 +9,12 @@ conditions, never on fixed sleeps.
 """
 
 import math
-import threading
 import time
 from typing import Callable, Iterator, List, Optional, Tuple
 import uuid
 
 import can
+from conftest import TickedDrive
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState
@@ -22,8 +22,6 @@ from flexure_ctrl.nodes.actuator_loop import ActuatorLoop, ActuatorLoopConfigErr
 from flexure_ctrl.nodes.actuator_loop import DriveConnectError, Mode
 from flexure_ctrl.nodes.common import actuator_state_topic, DIAGNOSTICS_TOPIC
 from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
-from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
-import numpy as np
 import pytest
 import rclpy
 from rclpy.exceptions import InvalidParameterValueException
@@ -39,34 +37,8 @@ WATCHDOG_TIMEOUT_S = 0.1
 WATCHDOG_DECEL_M_S2 = 1.0
 
 
-class TickedDrive:
-    """A SimulatedDrive on its own virtual bus, ticked from a thread in real time."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface='virtual', channel=channel)
-        parameters = LeadScrewParameters(lag_s=0.02, backlash_m=0.0, pot_noise_m=0.0)
-        self.actuator = LeadScrewActuator(parameters, np.random.default_rng(2))
-        self.drive = SimulatedDrive(self.bus, NODE_ID, self.actuator)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        last_s = time.monotonic()
-        while not self._stop.is_set():
-            now_s = time.monotonic()
-            self.drive.tick(now_s, now_s - last_s)
-            last_s = now_s
-            self._stop.wait(0.001)  # pacing of the simulated drive, ~1 kHz
-
-    def stop_ticking(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-
-    def shutdown(self) -> None:
-        self.stop_ticking()
-        self.drive.shutdown()
-        self.bus.shutdown()
+def ticked_drive(channel: str) -> TickedDrive:
+    return TickedDrive(channel, NODE_ID, lag_s=0.02, seed=2)
 
 
 class Harness:
@@ -190,7 +162,7 @@ def channel() -> str:
 
 @pytest.fixture
 def rig(channel) -> Iterator[TickedDrive]:
-    ticked = TickedDrive(channel)
+    ticked = ticked_drive(channel)
     yield ticked
     ticked.shutdown()
 
@@ -404,7 +376,7 @@ def test_connects_to_a_drive_that_appears_later(harness, channel):
     harness.spin_until(lambda: last_level(harness) == DiagnosticStatus.ERROR, 2.0,
                        'ERROR while not connected')
     assert node.mode is Mode.CONNECTING
-    late = TickedDrive(channel)
+    late = ticked_drive(channel)
     try:
         harness.spin_until(lambda: node.mode is Mode.RUNNING, 5.0, 'connected')
         assert late.drive.state is DriveState.OPERATION_ENABLED

@@ -5,53 +5,25 @@ The drive is ticked in real time (about 1 kHz) by a background thread, as the
 simulated rig does; every wait is a poll on a condition with a deadline.
 """
 
-import threading
 import time
 from typing import Callable, Iterator, List
 import uuid
 
 import can
+from conftest import TickedDrive
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState
 from flexure_ctrl.core.drive_client import DriveClient, DriveError, DriveFaultError
 from flexure_ctrl.core.drive_client import DriveTimeoutError, HeartbeatLostError
 from flexure_ctrl.core.drive_client import SdoAbortError
-from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
-import numpy as np
 import pytest
 
 NODE_ID = 7
 LOOP_PERIOD_S = 0.002
 
 
-class TickedDrive:
-    """A SimulatedDrive on its own virtual bus, ticked from a thread in real time."""
-
-    def __init__(self, channel: str, **drive_kwargs) -> None:
-        self.bus = can.Bus(interface='virtual', channel=channel)
-        parameters = LeadScrewParameters(lag_s=0.01, backlash_m=0.0, pot_noise_m=0.0)
-        self.actuator = LeadScrewActuator(parameters, np.random.default_rng(1))
-        self.drive = SimulatedDrive(self.bus, NODE_ID, self.actuator, **drive_kwargs)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        last_s = time.monotonic()
-        while not self._stop.is_set():
-            now_s = time.monotonic()
-            self.drive.tick(now_s, now_s - last_s)
-            last_s = now_s
-            self._stop.wait(0.001)  # pacing of the simulated drive, ~1 kHz
-
-    def stop_ticking(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-
-    def shutdown(self) -> None:
-        self.stop_ticking()
-        self.drive.shutdown()
-        self.bus.shutdown()
+def ticked_drive(channel: str, **drive_kwargs) -> TickedDrive:
+    return TickedDrive(channel, NODE_ID, lag_s=0.01, seed=1, **drive_kwargs)
 
 
 class Sniffer:
@@ -77,7 +49,7 @@ def channel() -> str:
 
 @pytest.fixture
 def rig(channel) -> Iterator[TickedDrive]:
-    ticked = TickedDrive(channel)
+    ticked = ticked_drive(channel)
     yield ticked
     ticked.shutdown()
 
