@@ -261,8 +261,9 @@ def test_demo_runs_the_path_and_reports_table_1_quantities(tmp_path):
     out = tmp_path / 'demo'
     result = subprocess.run(
         [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--period', '5', '--quiet',
-         '--out', str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        timeout=240, env=os.environ)
+         '--out', str(out), '--can-port', str(free_port()),
+         '--tracker-port', str(free_port())],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=240, env=os.environ)
     assert result.returncode == 0, result.stdout[-3000:]
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['points'] > 0.5 * 500 * 5

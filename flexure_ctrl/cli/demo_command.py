@@ -39,6 +39,10 @@ def add_parser(commands) -> None:
                         help='simulator knobs overriding config/simulator.yaml')
     parser.add_argument('--out', type=Path, default=Path('out/demo'), metavar='DIR',
                         help='output folder (default: %(default)s)')
+    parser.add_argument('--can-port', type=int, metavar='PORT',
+                        help='socketcand port of the simulated rig (default: config/sim.yaml)')
+    parser.add_argument('--tracker-port', type=int, metavar='PORT',
+                        help='tracker port of the simulated rig (default: config/sim.yaml)')
     parser.add_argument('--quiet', action='store_true',
                         help="do not echo the nodes' output")
     parser.set_defaults(run=run)
@@ -109,6 +113,10 @@ def run(arguments: argparse.Namespace) -> int:
                '--ros-arg', f'trajectory_generator:lead_out_s:={LEAD_OUT_S}']
     if arguments.sim_config:
         command += ['--sim-config', str(arguments.sim_config)]
+    for option, port in (('--can-port', arguments.can_port),
+                         ('--tracker-port', arguments.tracker_port)):
+        if port:
+            command += [option, str(port)]
     up = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, bufsize=1)
     ready = threading.Event()
