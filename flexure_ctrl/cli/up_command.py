@@ -86,7 +86,6 @@ class ProcessGroup:
         self._print_lock = threading.Lock()
         self.first_exit = threading.Event()
         self.stopping = False
-        self._ready_lines = {}
 
     def say(self, name: str, line: str) -> None:
         with self._print_lock:

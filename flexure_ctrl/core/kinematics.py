@@ -64,17 +64,8 @@ class TwoLinkArm:
         Returns ``(x_e, y_e, j11, j12, j21, j22, x_elbow, y_elbow)``: end point (m),
         Jacobian entries ``j_rc = d(coordinate r)/d(l0c)`` and elbow point (m).
         """
-        x1, y1, theta1, dx1, dy1, dtheta1 = self.joint1.components(l01_m)
-        x2, y2, theta2, dx2, dy2, dtheta2 = self.joint2.components(l02_m)
-        x_elbow, y_elbow, x_p2, y_p2, x_end, y_end = chain_points(
-            self.geometry, x1, y1, theta1, x2, y2, theta2)
-        cos1, sin1 = np.cos(theta1), np.sin(theta1)
-        # A joint rotation swings everything beyond its tip about that tip.
-        j11 = dx1 - dtheta1 * (y_end - y1)
-        j21 = dy1 + dtheta1 * (x_end - x1)
-        j12 = cos1 * dx2 - sin1 * dy2 - dtheta2 * (y_end - y_p2)
-        j22 = sin1 * dx2 + cos1 * dy2 + dtheta2 * (x_end - x_p2)
-        return x_end, y_end, j11, j12, j21, j22, x_elbow, y_elbow
+        return self._chain_with_jacobian(self.joint1.components(l01_m),
+                                         self.joint2.components(l02_m), np)
 
     def point_components(self, l01_m: float, l02_m: float) -> Tuple[float, ...]:
         """
@@ -83,11 +74,17 @@ class TwoLinkArm:
         The streaming path of the inverse solver node, where numpy's per-call overhead
         on single values would dominate. Extensions are clamped to the tables.
         """
-        x1, y1, theta1, dx1, dy1, dtheta1 = self.joint1.pose_and_slope_at(l01_m)
-        x2, y2, theta2, dx2, dy2, dtheta2 = self.joint2.pose_and_slope_at(l02_m)
+        return self._chain_with_jacobian(self.joint1.pose_and_slope_at(l01_m),
+                                         self.joint2.pose_and_slope_at(l02_m), math)
+
+    def _chain_with_jacobian(self, joint1, joint2, trig) -> Tuple:
+        """Chain points and Jacobian from both tips' poses and slopes (arrays or floats)."""
+        x1, y1, theta1, dx1, dy1, dtheta1 = joint1
+        x2, y2, theta2, dx2, dy2, dtheta2 = joint2
         x_elbow, y_elbow, x_p2, y_p2, x_end, y_end = chain_points(
-            self.geometry, x1, y1, theta1, x2, y2, theta2, trig=math)
-        cos1, sin1 = math.cos(theta1), math.sin(theta1)
+            self.geometry, x1, y1, theta1, x2, y2, theta2, trig=trig)
+        cos1, sin1 = trig.cos(theta1), trig.sin(theta1)
+        # A joint rotation swings everything beyond its tip about that tip.
         j11 = dx1 - dtheta1 * (y_end - y1)
         j21 = dy1 + dtheta1 * (x_end - x1)
         j12 = cos1 * dx2 - sin1 * dy2 - dtheta2 * (y_end - y_p2)

@@ -55,8 +55,10 @@ def _merge(base: dict, override: Mapping, path: Path, prefix: str = '') -> None:
                 raise SimConfigError(f'{path}: key {dotted!r} must be a number, got {value!r}')
             value = type(default)(value) if isinstance(default, float) else value
         elif isinstance(default, list):
-            if not isinstance(value, list) or len(value) != len(default) and (
-                    not all(isinstance(item, str) for item in default)):
+            # Numeric lists are per-joint or xyz and keep their length; name lists
+            # (tracker targets) may be any length.
+            names = all(isinstance(item, str) for item in default)
+            if not isinstance(value, list) or (not names and len(value) != len(default)):
                 raise SimConfigError(
                     f'{path}: key {dotted!r} must be a list of {len(default)} values')
         elif isinstance(default, str) and not isinstance(value, str):
