@@ -316,8 +316,15 @@ def test_quick_stop_latches_until_reset(running, rig):
     harness.spin_until(lambda: rig.drive.state is DriveState.QUICK_STOP_ACTIVE, 1.0,
                        'drive quick-stopped')
     stopped_at = len(harness.rpdos)
+    states_at = len(harness.states)
     harness.spin_for(0.3)  # setpoints keep coming: still nothing is commanded
     assert [cw for _, cw, _ in harness.rpdos[stopped_at - 1:]] == [Controlword.QUICK_STOP]
+    # The state topic goes on while latched: where the rod is, and zero commanded.
+    latched_states = harness.states[states_at + 5:]
+    assert len(latched_states) > 20
+    assert all(s.velocity[0] == 0.0 for s in latched_states)
+    assert latched_states[-1].position[0] == pytest.approx(rig.actuator.rod_position_m,
+                                                            abs=2e-4)
     assert rig.drive.state is DriveState.QUICK_STOP_ACTIVE
     assert running.node.mode is Mode.QUICK_STOPPED
     assert last_level(harness) == DiagnosticStatus.WARN

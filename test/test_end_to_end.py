@@ -149,6 +149,10 @@ class Rig:
             + '\n'.join(self.lines[-40:])
         assert self.spin_until(lambda: graph_connected(self.node), 30.0), 'graph not connected'
 
+    def problems(self) -> str:
+        """Return the warnings and errors that up and its nodes printed, for a failure."""
+        return '\n'.join(line for line in self.lines if 'WARN' in line or 'ERROR' in line)
+
     def interrupt(self, timeout_s=30.0) -> int:
         """Ctrl-C to up, as a user would; return its exit status."""
         if self.process.poll() is None:
@@ -200,9 +204,8 @@ def test_the_end_point_follows_the_path_within_the_uncorrected_band(rig_factory)
     assert points[:, 1].max() > 0.17 and points[:, 1].min() < -0.17
     # The paper's uncorrected band (Table 1: 1.5-3 mm in x, 10-25 mm in y); a 6 s path
     # adds dynamic lag, so allow up to twice that, and demand real errors, not zero.
-    problems = '\n'.join(line for line in rig.lines if 'WARN' in line or 'ERROR' in line)
-    assert 0.5 < max_x_mm < 8.0, problems
-    assert 5.0 < max_y_mm < 50.0, problems
+    assert 0.5 < max_x_mm < 8.0, rig.problems()
+    assert 5.0 < max_y_mm < 50.0, rig.problems()
 
     assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
     assert any('[actuator_1]' in line and 'disabled' in line.lower() for line in rig.lines)
@@ -231,7 +234,8 @@ def test_actuators_stop_within_the_watchdog_time_when_setpoints_die(rig_factory)
                        for _, m in rig.received[f'/flexure/{actuator}/state'][-20:])
                    for actuator in ('actuator_1', 'actuator_2'))
 
-    assert rig.spin_until(seen_well_past_the_allowance, 20.0), 'states stopped arriving'
+    assert rig.spin_until(seen_well_past_the_allowance, 20.0), \
+        'states stopped arriving:\n' + rig.problems()
     assert setpoints, 'no setpoints were ever seen'
     for actuator in ('actuator_1', 'actuator_2'):
         states = [(stamp_s(m), m.velocity[0])
@@ -239,12 +243,13 @@ def test_actuators_stop_within_the_watchdog_time_when_setpoints_die(rig_factory)
         before = [v for t, v in states if killed_s - 0.5 < t < killed_s]
         assert max(abs(v) for v in before) > 1e-4, f'{actuator} was not moving'
         after = [(t, v) for t, v in states if t > killed_s]
-        stopped_at = next((t for t, v in after if v == 0.0), None)
-        assert stopped_at is not None, (
-            f'{actuator} never stopped: {[(round(t - killed_s, 3), v) for t, v in after][:20]}'
+        # Stopped for good from the first zero after the last non-zero command (a moving
+        # actuator's command can pass through zero on its way).
+        last_moving = max((i for i, (_, v) in enumerate(after) if v != 0.0), default=-1)
+        assert last_moving + 1 < len(after), (
+            f'{actuator} never stopped: {[(round(t - killed_s, 3), v) for t, v in after][-20:]}'
             f' ... {len(after)} states after the kill')
-        restarted = [(t - stopped_at, v) for t, v in after if t >= stopped_at and v != 0.0]
-        assert not restarted, f'{actuator} moved again: {restarted[:5]}'
+        stopped_at = after[last_moving + 1][0]
         print(f'{actuator}: commanded velocity zero {1e3 * (stopped_at - killed_s):.0f} ms '
               'after the setpoint stream was killed')
         assert stopped_at - killed_s <= stop_allowance_s, actuator
@@ -253,7 +258,8 @@ def test_actuators_stop_within_the_watchdog_time_when_setpoints_die(rig_factory)
     resumed_s = time.time()
     state_1 = rig.received['/flexure/actuator_1/state']
     assert rig.spin_until(lambda: any(
-        stamp_s(m) > resumed_s and m.velocity[0] != 0.0 for _, m in state_1[-100:]), 10.0)
+        stamp_s(m) > resumed_s and m.velocity[0] != 0.0 for _, m in state_1[-100:]), 10.0), \
+        rig.problems()
     assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
 
 

@@ -9,7 +9,8 @@ drive's health, run the P-loop on the first-order-held setpoint and the potentio
 position, apply the setpoint watchdog and send one RPDO.
 
 Outputs: ``/flexure/<actuator>/state`` (``sensor_msgs/JointState``: potentiometer
-position m, commanded velocity m/s, stamped when the RPDO went out) every cycle, and
+position m, commanded velocity m/s, stamped when the RPDO went out) every cycle (while
+latched after a fault or quick stop too, with velocity 0: nothing is commanded), and
 ``/diagnostics`` (status ``flexure_ctrl/<actuator>``) at 1 Hz and on every change of
 level.
 
@@ -449,7 +450,10 @@ class ActuatorLoop(Node):
         try:
             client.poll()
             if self.mode is not Mode.RUNNING:
-                return  # latched: keep the picture of the drive fresh, command nothing
+                # Latched: keep the picture of the drive fresh and on the state topic (a
+                # user watching it sees where the actuator stopped), command nothing.
+                self._publish_state(client.position_m, 0.0)
+                return
             client.check_health(now_ns / _NS_PER_S)
         except (DriveError, can.CanError, OSError) as error:
             if self.mode is Mode.RUNNING:
@@ -472,21 +476,7 @@ class ActuatorLoop(Node):
         except (can.CanError, OSError) as error:
             self._trip(error)
             return
-        # When the RPDO went out, on the system clock (the ROS clock without sim time;
-        # a loop driving hardware never runs on sim time). Cheaper than Clock.now().
-        stamp_ns = time.time_ns()
-        state = self._state
-        state.header.stamp.sec = stamp_ns // _NS_PER_S
-        state.header.stamp.nanosec = stamp_ns % _NS_PER_S
-        state.position[0] = measured_m
-        state.velocity[0] = client.commanded_velocity_m_s
-        if self._publishing:
-            try:
-                self.state_publisher.publish(state)
-            except RCLError:
-                # Ctrl-C or SIGTERM invalidated the context before safe_stop() ended
-                # this thread: keep commanding the drive until then, stop publishing.
-                self._publishing = False
+        self._publish_state(measured_m, client.commanded_velocity_m_s)
         self.cycles += 1
         # State changes only: logged and reported once, not every cycle.
         if loop.setpoint_clamped is not self._clamping:
@@ -502,6 +492,24 @@ class ActuatorLoop(Node):
             else:
                 self.get_logger().info('fresh setpoints: following them')
             self._notify_diagnostics()
+
+    def _publish_state(self, measured_m: float, commanded_m_s: float) -> None:
+        """Publish the cycle's state (lock held), reusing one message."""
+        # When the RPDO went out, on the system clock (the ROS clock without sim time;
+        # a loop driving hardware never runs on sim time). Cheaper than Clock.now().
+        stamp_ns = time.time_ns()
+        state = self._state
+        state.header.stamp.sec = stamp_ns // _NS_PER_S
+        state.header.stamp.nanosec = stamp_ns % _NS_PER_S
+        state.position[0] = measured_m
+        state.velocity[0] = commanded_m_s
+        if self._publishing:
+            try:
+                self.state_publisher.publish(state)
+            except RCLError:
+                # Ctrl-C or SIGTERM invalidated the context before safe_stop() ended
+                # this thread: keep commanding the drive until then, stop publishing.
+                self._publishing = False
 
     def _trip(self, error: Exception) -> None:
         """Latch a fault (lock held): one quick-stop frame, then no commands until reset."""
