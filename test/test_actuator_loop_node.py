@@ -323,8 +323,8 @@ def test_quick_stop_latches_until_reset(running, rig):
     latched_states = harness.states[states_at + 5:]
     assert len(latched_states) > 20
     assert all(s.velocity[0] == 0.0 for s in latched_states)
-    assert latched_states[-1].position[0] == pytest.approx(rig.actuator.rod_position_m,
-                                                            abs=2e-4)
+    rod_m = rig.actuator.rod_position_m
+    assert latched_states[-1].position[0] == pytest.approx(rod_m, abs=2e-4)
     assert rig.drive.state is DriveState.QUICK_STOP_ACTIVE
     assert running.node.mode is Mode.QUICK_STOPPED
     assert last_level(harness) == DiagnosticStatus.WARN
