@@ -46,3 +46,7 @@ class ElasticaError(FlexureCtrlError, RuntimeError):
 
 class TrajectoryError(FlexureCtrlError, ValueError):
     """A trajectory definition or way-point file is invalid."""
+
+
+class CorrectionError(FlexureCtrlError, ValueError):
+    """A recorded run cannot be used for path correction (missing or incomplete data)."""

@@ -1,0 +1,362 @@
+"""
+Path correction: the command path of run k+1 from the measured error of run k.
+
+The paper corrects once (Eq. 8): the next command is ``c1 = 2 p - e0``, the demand ``p``
+plus the error ``epsilon0 = p - e0`` of the uncorrected run (Eq. 7), where ``e0`` is the
+end point the tracker measured. Iterating the same idea is iterative learning control:
+
+``c_{k+1} = c_k + gamma * Q(p - e_k)``
+
+with a learning gain ``gamma`` and a zero-phase low-pass filter ``Q``, so that tracker
+noise is not learned and the correction does not lag the error it corrects. With
+``c_0 = p``, ``gamma = 1`` and ``Q = 1`` the first step is Eq. 8.
+
+All signals live on one clock. A run's demand, command and tracker stamps are turned
+into path time (seconds since the path's first point, :attr:`RecordedRun.path_start_ns`)
+and the error is taken at the tracker's stamps, against the demand interpolated there.
+Tracker dropouts leave gaps: gaps up to ``bridge_max_s`` are bridged by interpolating
+the (smooth) error across them; longer ones are not learned from (the command there
+stays as it was).
+"""
+
+from dataclasses import dataclass
+import math
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple, Union
+
+from flexure_ctrl.core.errors import CorrectionError
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+from scipy.signal import butter, sosfiltfilt
+
+NS_PER_S = 1_000_000_000
+DEFAULT_GRID_RATE_HZ = 100.0
+DEFAULT_CUTOFF_HZ = 2.0
+DEFAULT_BRIDGE_MAX_S = 0.1
+# Median absolute deviation to the standard deviation of a normal distribution.
+_MAD_TO_SIGMA = 1.4826
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedRun:
+    """
+    One run's streams, on one clock.
+
+    :param path_start_ns: when the path's first point was due (ns); path time 0.
+    :param duration_s: the path's duration (s).
+    :param demand_t_ns: demand stamps (ns), increasing.
+    :param demand_m: demand points ``(N, 2)`` (m).
+    :param command_m: command points at the demand stamps ``(N, 2)`` (m).
+    :param tracked_t_ns: tracker stamps (ns), increasing.
+    :param tracked_m: tracked end points ``(M, 2)`` (m).
+    """
+
+    path_start_ns: int
+    duration_s: float
+    demand_t_ns: np.ndarray
+    demand_m: np.ndarray
+    command_m: np.ndarray
+    tracked_t_ns: np.ndarray
+    tracked_m: np.ndarray
+
+    def demand_path_time_s(self) -> np.ndarray:
+        return (self.demand_t_ns - self.path_start_ns) / NS_PER_S
+
+    def tracked_path_time_s(self) -> np.ndarray:
+        return (self.tracked_t_ns - self.path_start_ns) / NS_PER_S
+
+
+@dataclass(frozen=True, eq=False)
+class PathErrors:
+    """
+    A run's error, at the tracker's samples and on a uniform grid of path time.
+
+    Tracker-sample arrays cover the path ``[0, duration]``: they give the paper's
+    Table 1 figures. Grid arrays cover the span the recording allows (lead-in and
+    lead-out included, so that filtering has no edge at the path's ends).
+    """
+
+    duration_s: float
+    sample_t_s: np.ndarray        # tracker stamps within the path (s of path time)
+    sample_desired_m: np.ndarray  # (M, 2) demand at those stamps
+    sample_realised_m: np.ndarray  # (M, 2) tracked points
+    sample_error_m: np.ndarray    # (M, 2) desired - realised (Eq. 7)
+    grid_t_s: np.ndarray          # uniform path time (s)
+    grid_desired_m: np.ndarray    # (K, 2) demand p
+    grid_command_m: np.ndarray    # (K, 2) command c_k of this run
+    grid_error_m: np.ndarray      # (K, 2) error, bridged across gaps
+    grid_learnable: np.ndarray    # (K,) False inside gaps longer than the bridge
+
+    def max_abs_error_m(self) -> np.ndarray:
+        """Largest ``|epsilon_x|``, ``|epsilon_y|`` (m) over the path: Table 1."""
+        return np.abs(self.sample_error_m).max(axis=0)
+
+    def rms_error_m(self) -> np.ndarray:
+        """RMS of ``epsilon_x``, ``epsilon_y`` (m) over the path."""
+        return np.sqrt(np.mean(self.sample_error_m ** 2, axis=0))
+
+    @property
+    def grid_rate_hz(self) -> float:
+        return 1.0 / float(self.grid_t_s[1] - self.grid_t_s[0])
+
+    def on_path(self) -> np.ndarray:
+        """Mask of the grid samples within the path ``[0, duration]``."""
+        tolerance_s = 1e-9
+        return (self.grid_t_s >= -tolerance_s) & (self.grid_t_s <= self.duration_s + tolerance_s)
+
+    def smooth_error_m(self, cutoff_hz: float = DEFAULT_CUTOFF_HZ) -> np.ndarray:
+        """Return the grid error through the zero-phase low-pass ``Q`` ``(K, 2)`` (m)."""
+        return zero_phase_lowpass(self.grid_error_m, self.grid_rate_hz, cutoff_hz)
+
+    def noise_m(self, cutoff_hz: float = DEFAULT_CUTOFF_HZ) -> np.ndarray:
+        """
+        Robust standard deviation (m, per axis) of the error above ``cutoff_hz``.
+
+        What the filter removes is mostly tracker noise (and unrepeatable jitter):
+        the floor that learning cannot go below.
+        """
+        smooth = self.smooth_error_m(cutoff_hz)
+        trend = np.column_stack([np.interp(self.sample_t_s, self.grid_t_s, smooth[:, axis])
+                                 for axis in range(2)])
+        residual = self.sample_error_m - trend
+        deviation = np.abs(residual - np.median(residual, axis=0))
+        return _MAD_TO_SIGMA * np.median(deviation, axis=0)
+
+
+def zero_phase_lowpass(signal: np.ndarray, sample_rate_hz: float,
+                       cutoff_hz: float, order: int = 2) -> np.ndarray:
+    """
+    Filter forwards and backwards with a Butterworth low-pass: no phase lag.
+
+    The magnitude response is the Butterworth's squared, so ``cutoff_hz`` is where the
+    gain is 1/2 (-6 dB); a constant passes unchanged.
+
+    :param signal: samples along axis 0, uniformly spaced.
+    :param sample_rate_hz: sample rate (Hz).
+    :param cutoff_hz: -3 dB frequency of the one-way filter (Hz), below Nyquist.
+    :param order: order of the one-way filter.
+    :raises CorrectionError: if the cutoff is not below the Nyquist frequency or the
+        signal is too short to filter.
+    """
+    values = np.asarray(signal, dtype=float)
+    nyquist_hz = 0.5 * sample_rate_hz
+    if not 0.0 < cutoff_hz < nyquist_hz:
+        raise CorrectionError(
+            f'filter cutoff {cutoff_hz} Hz must lie in (0, {nyquist_hz}) Hz (Nyquist)')
+    sections = butter(order, cutoff_hz / nyquist_hz, output='sos')
+    minimum = 3 * (2 * len(sections) + 1)
+    if values.shape[0] <= minimum:
+        raise CorrectionError(f'{values.shape[0]} samples are too few to filter '
+                              f'(need more than {minimum})')
+    return sosfiltfilt(sections, values, axis=0)
+
+
+def _interpolate_columns(t_new: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(t_new, t, values[:, axis])
+                            for axis in range(values.shape[1])])
+
+
+def path_errors(run: RecordedRun, grid_rate_hz: float = DEFAULT_GRID_RATE_HZ,
+                bridge_max_s: float = DEFAULT_BRIDGE_MAX_S) -> PathErrors:
+    """
+    Align a run's tracker points with its demand and compute Eq. 7's errors.
+
+    :param run: the recorded streams.
+    :param grid_rate_hz: rate of the uniform path-time grid (Hz).
+    :param bridge_max_s: longest tracker gap (s) bridged by interpolation; longer gaps
+        are marked not learnable.
+    :raises CorrectionError: if the demand or the tracker does not cover the whole path,
+        or a stream is empty.
+    """
+    if len(run.demand_t_ns) < 2 or len(run.tracked_t_ns) < 2:
+        raise CorrectionError(
+            f'a run needs demand and tracker points; got {len(run.demand_t_ns)} demand and '
+            f'{len(run.tracked_t_ns)} tracker points')
+    demand_t = run.demand_path_time_s()
+    demand = np.asarray(run.demand_m, dtype=float)
+    command = np.asarray(run.command_m, dtype=float)
+    tracked_t = run.tracked_path_time_s()
+    tracked = np.asarray(run.tracked_m, dtype=float)
+    duration_s = float(run.duration_s)
+    # Half a demand period of slack: the demand's first and last ticks fall on its own
+    # timer, not on the path's ends.
+    slack_s = 0.5 * float(np.median(np.diff(demand_t)))
+    for name, times in (('demand', demand_t), ('tracker', tracked_t)):
+        if times[0] > slack_s or times[-1] < duration_s - slack_s:
+            raise CorrectionError(
+                f'the {name} covers path time {times[0]:.3f} to {times[-1]:.3f} s, not the '
+                f'whole path (0 to {duration_s:.3f} s): was the recording cut short?')
+
+    # Eq. 7 at each tracker sample (within the demand's span: no extrapolation).
+    within_demand = (tracked_t >= demand_t[0]) & (tracked_t <= demand_t[-1])
+    sample_t = tracked_t[within_demand]
+    sample_desired = _interpolate_columns(sample_t, demand_t, demand)
+    sample_error = sample_desired - tracked[within_demand]
+    on_path = (sample_t >= -slack_s) & (sample_t <= duration_s + slack_s)
+    if not np.any(on_path):
+        raise CorrectionError('no tracker point lies within the path')
+
+    # The grid: whole steps of 1/rate through path time 0, over the span both cover.
+    step_s = 1.0 / grid_rate_hz
+    first = math.ceil(max(sample_t[0], demand_t[0]) / step_s - 1e-9)
+    last = math.floor(min(sample_t[-1], demand_t[-1]) / step_s + 1e-9)
+    grid_t = np.round(np.arange(first, last + 1) * step_s, 9)
+    grid_error = _interpolate_columns(grid_t, sample_t, sample_error)
+    # A grid point is learnable if the tracker samples around it are close together.
+    after = np.clip(np.searchsorted(sample_t, grid_t), 1, len(sample_t) - 1)
+    spacing_s = sample_t[after] - sample_t[after - 1]
+    learnable = spacing_s <= bridge_max_s
+    return PathErrors(
+        duration_s=duration_s,
+        sample_t_s=sample_t[on_path], sample_desired_m=sample_desired[on_path],
+        sample_realised_m=tracked[within_demand][on_path],
+        sample_error_m=sample_error[on_path],
+        grid_t_s=grid_t, grid_desired_m=_interpolate_columns(grid_t, demand_t, demand),
+        grid_command_m=_interpolate_columns(grid_t, demand_t, command),
+        grid_error_m=grid_error, grid_learnable=learnable)
+
+
+def learning_weight(learnable: np.ndarray, taper_samples: int) -> np.ndarray:
+    """
+    Weight of the update: 1 where learnable, 0 in long gaps, ramping in between.
+
+    The ramp keeps a gap from cutting a step into the command.
+    """
+    weight = uniform_filter1d(np.asarray(learnable, dtype=float), max(1, taper_samples),
+                              mode='nearest')
+    weight[~np.asarray(learnable, dtype=bool)] = 0.0
+    return weight
+
+
+@dataclass(frozen=True, eq=False)
+class CommandPath:
+    """A command path on path time: what ``trajectory_generator`` takes as a file."""
+
+    t_s: np.ndarray
+    points_m: np.ndarray
+
+    def write_csv(self, path: Union[str, Path]) -> Path:
+        """Write ``t_s,x_m,y_m`` rows (the way-point CSV layout); return the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rows = np.column_stack([self.t_s, self.points_m])
+        np.savetxt(path, rows, delimiter=',', header='t_s,x_m,y_m', comments='',
+                   fmt=('%.6f', '%.9f', '%.9f'))
+        return path
+
+
+def corrected_command(errors: PathErrors, gain: float = 1.0,
+                      cutoff_hz: Optional[float] = DEFAULT_CUTOFF_HZ,
+                      taper_s: float = 0.1) -> CommandPath:
+    """
+    Return ``c_{k+1} = c_k + gain * Q(p - e_k)`` on the path ``[0, duration]``.
+
+    :param errors: the run's errors and its command ``c_k`` (:func:`path_errors`).
+    :param gain: learning gain ``gamma`` (1 with ``cutoff_hz=None`` is the paper's Eq. 8).
+    :param cutoff_hz: cutoff of the zero-phase low-pass ``Q`` (Hz); None: no filter.
+    :param taper_s: length (s) of the ramp of the update next to a long gap.
+    """
+    if not gain > 0.0:
+        raise CorrectionError(f'the learning gain must be > 0, got {gain}')
+    error = errors.grid_error_m if cutoff_hz is None else errors.smooth_error_m(cutoff_hz)
+    weight = learning_weight(errors.grid_learnable, int(round(taper_s * errors.grid_rate_hz)))
+    command = errors.grid_command_m + gain * weight[:, None] * error
+    return CommandPath(*_on_path_exactly(errors, command))
+
+
+def _on_path_exactly(errors: PathErrors, values: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Grid values on ``[0, duration]``, with samples at both ends exactly."""
+    on_path = errors.on_path()
+    t_s = errors.grid_t_s[on_path]
+    points = values[on_path]
+    duration_s = errors.duration_s
+    if t_s[-1] < duration_s - 1e-9:
+        # A duration that is no whole number of grid steps: add the last point.
+        end = _interpolate_columns(np.array([duration_s]), errors.grid_t_s, values)
+        t_s = np.append(t_s, duration_s)
+        points = np.vstack([points, end])
+    t_s = t_s.copy()
+    t_s[0], t_s[-1] = 0.0, duration_s
+    return t_s, points
+
+
+@dataclass(eq=False)
+class Iteration:
+    """One run of the learning: its command's errors and the gain that made the next."""
+
+    errors: PathErrors
+    max_abs_error_m: np.ndarray
+    gain: Optional[float] = None   # the gain applied to this run to make the next command
+
+
+class IterativeCorrector:
+    """
+    Learn the command path run after run, reducing the gain when the error stalls.
+
+    Each run is scored by its maximum errors relative to the first run's (x and y
+    weighted alike). When a run is not better than the best so far by ``stall_ratio``,
+    the gain is multiplied by ``gain_shrink`` and the next command learns from the best
+    run instead; below ``min_gain`` learning stops.
+
+    :param gain: initial learning gain ``gamma``.
+    :param cutoff_hz: cutoff of ``Q`` (Hz).
+    :param min_gain: learning stops when the gain falls below this.
+    :param gain_shrink: factor applied to the gain when the error stops falling.
+    :param stall_ratio: a run must score below ``stall_ratio`` times the best so far to
+        count as improving.
+    """
+
+    def __init__(self, gain: float = 1.0, cutoff_hz: float = DEFAULT_CUTOFF_HZ,
+                 min_gain: float = 0.1, gain_shrink: float = 0.5,
+                 stall_ratio: float = 0.95) -> None:
+        if not 0.0 < gain <= 2.0:
+            raise CorrectionError(f'the learning gain must be in (0, 2], got {gain}')
+        if not 0.0 < gain_shrink < 1.0:
+            raise CorrectionError(f'gain_shrink must be in (0, 1), got {gain_shrink}')
+        self.gain = float(gain)
+        self.cutoff_hz = cutoff_hz
+        self.min_gain = float(min_gain)
+        self.gain_shrink = float(gain_shrink)
+        self.stall_ratio = float(stall_ratio)
+        self.iterations: List[Iteration] = []
+        self.note = ''
+
+    def _score(self, iteration: Iteration) -> float:
+        reference = np.maximum(self.iterations[0].max_abs_error_m, 1e-12)
+        return float(np.sum(iteration.max_abs_error_m / reference))
+
+    def add_run(self, errors: PathErrors) -> None:
+        """Add the errors of the run made with the last proposed command."""
+        self.iterations.append(Iteration(errors, errors.max_abs_error_m()))
+
+    def next_command(self) -> Optional[CommandPath]:
+        """
+        Return the next run's command path, or None when learning has stopped.
+
+        :raises CorrectionError: if no run was added.
+        """
+        if not self.iterations:
+            raise CorrectionError('add a run before asking for the next command')
+        latest = self.iterations[-1]
+        earlier = self.iterations[:-1]
+        source = latest
+        if earlier:
+            best = min(earlier, key=self._score)
+            if self._score(latest) >= self.stall_ratio * self._score(best):
+                self.gain *= self.gain_shrink
+                source = best if self._score(best) < self._score(latest) else latest
+                self.note = (f'error stopped falling: gain reduced to {self.gain:.3g}, '
+                             f'learning from iteration {self.iterations.index(source)}')
+            else:
+                self.note = ''
+        if self.gain < self.min_gain:
+            self.note = f'learning stopped: gain {self.gain:.3g} below {self.min_gain:.3g}'
+            return None
+        latest.gain = self.gain
+        return corrected_command(source.errors, self.gain, self.cutoff_hz)
+
+
+def reduction_percent(first: Sequence[float], later: Sequence[float]) -> Tuple[float, ...]:
+    """Reduction (%) from ``first`` to ``later``, per axis, as Table 1 reports it."""
+    return tuple(100.0 * (1.0 - b / a) if a > 0.0 else float('nan')
+                 for a, b in zip(first, later))

@@ -1,0 +1,194 @@
+"""Path correction: Eq. 7 and 8 against closed forms, and learning on a model plant."""
+
+from flexure_ctrl.core.correction import (CommandPath, corrected_command, IterativeCorrector,
+                                          path_errors, RecordedRun, reduction_percent,
+                                          zero_phase_lowpass)
+from flexure_ctrl.core.errors import CorrectionError
+from flexure_ctrl.core.trajectory import SinePath, WaypointPath
+import numpy as np
+import pytest
+
+T0_NS = 1_700_000_000_000_000_000
+PATH = SinePath(x_centre_m=1.015, y_centre_m=0.0, amplitude_m=0.2, period_s=14.0)
+LEAD_S = 1.0
+
+
+def stamps_ns(rate_hz, start_s, end_s, rng=None, jitter_s=0.0):
+    t = np.arange(start_s, end_s, 1.0 / rate_hz)
+    if rng is not None and jitter_s:
+        t = t + rng.uniform(0.0, jitter_s, t.size)
+    return T0_NS + np.round(t * 1e9).astype(np.int64)
+
+
+def demand_at(path, t_s):
+    return path.sample(np.clip(t_s, 0.0, path.duration_s))[0]
+
+
+def model_plant(command_of_t, t_s, lag_s=0.05):
+    """Realise a command repeatably: lag, a gain error in y, a bow in x and an offset."""
+    c = command_of_t(t_s - lag_s)
+    x = c[:, 0] + 0.6e-3 + 4e-2 * (c[:, 1] ** 2)
+    y = 0.93 * c[:, 1] - 2e-3 * np.sin(6.0 * c[:, 1])
+    return np.column_stack([x, y])
+
+
+def make_run(command_of_t, noise_m=0.0, seed=0, drop=None, lag_s=0.05, path=PATH):
+    rng = np.random.default_rng(seed)
+    demand_t = stamps_ns(100.0, -LEAD_S, path.duration_s + LEAD_S)
+    demand_s = (demand_t - T0_NS) / 1e9
+    tracked_t = stamps_ns(500.0, -LEAD_S, path.duration_s + LEAD_S)
+    tracked_s = (tracked_t - T0_NS) / 1e9
+    if drop is not None:
+        keep = ~drop(tracked_s)
+        tracked_t, tracked_s = tracked_t[keep], tracked_s[keep]
+    tracked = model_plant(command_of_t, tracked_s, lag_s)
+    tracked = tracked + rng.normal(0.0, noise_m, tracked.shape) if noise_m else tracked
+    return RecordedRun(T0_NS, path.duration_s, demand_t, demand_at(path, demand_s),
+                       command_of_t(demand_s), tracked_t, tracked)
+
+
+def command_function(command: CommandPath):
+    def of_t(t_s):
+        return np.column_stack([np.interp(t_s, command.t_s, command.points_m[:, axis])
+                                for axis in range(2)])
+    return of_t
+
+
+def test_lowpass_passes_constants_and_slow_sines_without_lag():
+    rate_hz = 100.0
+    t = np.arange(0.0, 20.0, 1.0 / rate_hz)
+    assert np.allclose(zero_phase_lowpass(np.full((t.size, 2), 3.5), rate_hz, 2.0), 3.5)
+    slow = np.sin(2.0 * np.pi * 0.1 * t)
+    filtered = zero_phase_lowpass(slow, rate_hz, 2.0)
+    middle = slice(200, -200)
+    # Zero phase: no delay, and the 0.1 Hz amplitude is kept to 1e-4.
+    assert np.max(np.abs(filtered[middle] - slow[middle])) < 1e-4
+    fast = np.sin(2.0 * np.pi * 20.0 * t)
+    assert np.max(np.abs(zero_phase_lowpass(fast, rate_hz, 2.0)[middle])) < 0.02
+
+
+def test_lowpass_reduces_white_noise_by_its_bandwidth():
+    rate_hz = 500.0
+    noise = np.random.default_rng(1).normal(0.0, 1.0, 200_000)
+    filtered = zero_phase_lowpass(noise, rate_hz, 2.0)
+    # Noise power passes in proportion to the equivalent noise bandwidth: for the
+    # squared 2nd-order Butterworth, the integral of 1 / (1 + x^4)^2, 3 pi / (8 sqrt 2),
+    # times the cutoff, out of Nyquist.
+    expected_std = np.sqrt(3.0 * np.pi / (8.0 * np.sqrt(2.0)) * 2.0 / (rate_hz / 2.0))
+    assert np.std(filtered) == pytest.approx(expected_std, rel=0.03)
+
+
+def test_lowpass_rejects_a_cutoff_above_nyquist():
+    with pytest.raises(CorrectionError, match='Nyquist'):
+        zero_phase_lowpass(np.zeros(100), 100.0, 60.0)
+
+
+def test_errors_are_demand_minus_realised_at_the_tracker_stamps():
+    run = make_run(lambda t: demand_at(PATH, t))
+    errors = path_errors(run)
+    t = errors.sample_t_s
+    assert t[0] >= -0.005 and t[-1] <= PATH.duration_s + 0.005
+    expected = demand_at(PATH, t) - model_plant(lambda s: demand_at(PATH, s), t)
+    # Demand interpolated linearly between 100 Hz samples: sub-micrometre error.
+    assert np.max(np.abs(errors.sample_error_m - expected)) < 1e-6
+    assert errors.max_abs_error_m() == pytest.approx(np.abs(expected).max(axis=0), abs=1e-6)
+    # The grid covers the lead-in and lead-out too, and path time 0 and the end exactly.
+    assert errors.grid_t_s[0] < -0.5 and errors.grid_t_s[-1] > PATH.duration_s + 0.5
+    assert np.any(np.isclose(errors.grid_t_s, 0.0, atol=1e-12))
+    assert np.any(np.isclose(errors.grid_t_s, PATH.duration_s, atol=1e-9))
+
+
+def test_first_correction_is_the_papers_eq_8():
+    run = make_run(lambda t: demand_at(PATH, t))
+    errors = path_errors(run)
+    command = corrected_command(errors, gain=1.0, cutoff_hz=None)
+    assert command.t_s[0] == 0.0 and command.t_s[-1] == PATH.duration_s
+    # c1 = 2 p - e0, with e0 the realised end point, interpolated at the grid.
+    p = demand_at(PATH, command.t_s)
+    e0 = model_plant(lambda s: demand_at(PATH, s), command.t_s)
+    assert np.max(np.abs(command.points_m - (2.0 * p - e0))) < 2e-6
+
+
+def test_gain_scales_the_update():
+    errors = path_errors(make_run(lambda t: demand_at(PATH, t)))
+    full = corrected_command(errors, gain=1.0)
+    half = corrected_command(errors, gain=0.5)
+    p = demand_at(PATH, full.t_s)
+    assert np.allclose(half.points_m - p, 0.5 * (full.points_m - p), atol=1e-12)
+
+
+def test_learning_converges_to_the_noise_floor_on_a_lagging_distorting_plant():
+    noise_m = 2e-5
+    corrector = IterativeCorrector(gain=1.0)
+    command = lambda t: demand_at(PATH, t)  # noqa: E731 (c_0 = p)
+    maxima = []
+    for iteration in range(5):
+        errors = path_errors(make_run(command, noise_m=noise_m, seed=iteration))
+        corrector.add_run(errors)
+        maxima.append(errors.max_abs_error_m())
+        proposed = corrector.next_command()
+        assert proposed is not None
+        command = command_function(proposed)
+    first, last = maxima[0], maxima[-1]
+    assert first[1] > 5e-3  # a real error to start from: millimetres in y
+    # One correction (Eq. 8 with Q) takes most of it away, as in the paper's Table 1.
+    assert all(r > 80.0 for r in reduction_percent(first, maxima[1]))
+    # Then the floor: the maximum of white noise over ~7,000 samples is ~4 sigma.
+    assert np.all(last < 6.0 * noise_m), last
+    noise = errors.noise_m()
+    assert noise == pytest.approx([noise_m, noise_m], rel=0.15)
+
+
+def test_a_long_tracker_gap_is_not_learned_and_a_short_one_is_bridged():
+    def drop(t):
+        return ((t > 3.0) & (t < 3.5)) | ((t > 8.0) & (t < 8.03))
+
+    run = make_run(lambda t: demand_at(PATH, t), drop=drop)
+    errors = path_errors(run)
+    grid = errors.grid_t_s
+    assert not np.any(errors.grid_learnable[(grid > 3.01) & (grid < 3.49)])
+    assert np.all(errors.grid_learnable[(grid > 7.9) & (grid < 8.1)])
+    command = corrected_command(errors, gain=1.0)
+    in_gap = (command.t_s > 3.01) & (command.t_s < 3.49)
+    # Inside the long gap the command stays the previous one (here the demand) ...
+    assert np.allclose(command.points_m[in_gap], demand_at(PATH, command.t_s[in_gap]),
+                       atol=1e-12)
+    # ... and across the short gap it is learned as if nothing were missing.
+    reference = corrected_command(path_errors(make_run(lambda t: demand_at(PATH, t))))
+    near = (command.t_s > 7.9) & (command.t_s < 8.1)
+    assert np.max(np.abs(command.points_m[near] - reference.points_m[near])) < 5e-6
+
+
+def test_a_recording_that_misses_the_end_of_the_path_is_refused():
+    run = make_run(lambda t: demand_at(PATH, t), drop=lambda t: t > 10.0)
+    with pytest.raises(CorrectionError, match='tracker covers .* not the whole path'):
+        path_errors(run)
+
+
+def test_gain_is_reduced_when_the_error_stops_falling_and_learning_stops_at_min_gain():
+    corrector = IterativeCorrector(gain=1.0, min_gain=0.3)
+    errors = path_errors(make_run(lambda t: demand_at(PATH, t)))
+    corrector.add_run(errors)
+    assert corrector.next_command() is not None and corrector.gain == 1.0
+    corrector.add_run(errors)  # no better: halve the gain
+    assert corrector.next_command() is not None
+    assert corrector.gain == 0.5 and 'gain reduced' in corrector.note
+    corrector.add_run(errors)
+    assert corrector.next_command() is None
+    assert 'learning stopped' in corrector.note
+
+
+def test_command_csv_is_a_waypoint_file_of_the_paths_duration(tmp_path):
+    errors = path_errors(make_run(lambda t: demand_at(PATH, t)))
+    command = corrected_command(errors)
+    written = command.write_csv(tmp_path / 'next' / 'command.csv')
+    loaded = WaypointPath.from_file(written)
+    assert loaded.duration_s == pytest.approx(PATH.duration_s, abs=1e-6)
+    assert np.allclose(loaded.sample(command.t_s)[0], command.points_m, atol=1e-9)
+
+
+def test_paths_not_on_whole_grid_steps_end_exactly_at_their_duration():
+    path = SinePath(x_centre_m=1.015, y_centre_m=0.0, amplitude_m=0.2, period_s=5.003)
+    run = make_run(lambda t: demand_at(path, t), path=path)
+    command = corrected_command(path_errors(run))
+    assert command.t_s[-1] == 5.003 and np.all(np.diff(command.t_s) > 0.0)
