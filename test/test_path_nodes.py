@@ -8,14 +8,16 @@ from flexure_ctrl.core.kinematics import TwoLinkArm
 from flexure_ctrl.core.trajectory import SinePath
 from flexure_ctrl.nodes.common import COMMAND_TOPIC, DEMAND_TOPIC, SETPOINTS_TOPIC
 from flexure_ctrl.nodes.inverse_solver import InverseSolverNode
-from flexure_ctrl.nodes.trajectory_generator import TrajectoryGenerator
+from flexure_ctrl.nodes.trajectory_generator import latched_qos, TrajectoryGenerator
 from geometry_msgs.msg import PointStamped
+from nav_msgs.msg import Path
 import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter as RclpyParameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -137,6 +139,53 @@ def test_correction_file_changes_the_command_not_the_demand(harness_factory, tmp
     assert harness.spin_until(lambda: len(commands) >= 5 and len(demands) >= 5)
     assert all((c.point.x, c.point.y) == (1.02, 0.21) for c in commands)
     assert all(d.point.x == pytest.approx(1.015) for d in demands)
+
+
+def test_correction_file_is_set_between_runs_and_refused_during_one(
+        harness_factory, tmp_path):
+    good = tmp_path / 'command.csv'
+    good.write_text('t_s,x_m,y_m\n0.0,1.02,0.21\n1.0,1.02,0.21\n')
+    wrong_length = tmp_path / 'other_path.csv'
+    wrong_length.write_text('t_s,x_m,y_m\n0.0,1.02,0.21\n2.0,1.02,0.21\n')
+    harness = harness_factory(design_arguments() + [
+        '-p', 'path.period_s:=1.0', '-p', 'lead_in_s:=0.2', '-p', 'lead_out_s:=0.0'])
+    commands = harness.collect(PointStamped, COMMAND_TOPIC)
+    demands = harness.collect(PointStamped, DEMAND_TOPIC)
+    paths = []
+    harness.subscriptions.append(harness.probe.create_subscription(
+        Path, '/flexure/demand_path', paths.append, latched_qos()))
+    generator = harness.add(TrajectoryGenerator(context=harness.context))
+
+    def set_correction(value):
+        return generator.set_parameters([RclpyParameter('correction_file', value=value)])[0]
+
+    refused = set_correction(str(wrong_length))
+    assert not refused.successful and 'lasts 2.0 s' in refused.reason
+    assert set_correction(str(good)).successful
+    assert generator.get_parameter('correction_file').value == str(good)
+    harness.start_when_connected(generator)
+    during = set_correction('')
+    assert not during.successful and 'in progress' in during.reason
+    assert harness.spin_until(lambda: not generator.running, 5.0)
+    assert all((c.point.x, c.point.y) == (1.02, 0.21) for c in commands)
+    # The path published at the start carries path time zero: lead-in after the start.
+    assert harness.spin_until(lambda: any(p.header.stamp.sec for p in paths))
+    start = paths[-1].header.stamp
+    path_start_ns = start.sec * 1_000_000_000 + start.nanosec
+    assert path_start_ns == generator.last_run_start_ns + 200_000_000
+    sine = SinePath(period_s=1.0)
+    for demand in demands:
+        stamp_ns = demand.header.stamp.sec * 1_000_000_000 + demand.header.stamp.nanosec
+        expected, _ = sine.sample((stamp_ns - path_start_ns) * 1e-9)
+        assert (demand.point.x, demand.point.y) == pytest.approx(tuple(expected), abs=1e-12)
+    # Between runs it is accepted again: back to command = demand.
+    assert set_correction('').successful
+    commands.clear()
+    demands.clear()
+    generator.start_run()
+    assert harness.spin_until(lambda: len(commands) >= 5 and len(demands) >= 5)
+    assert [(c.point.x, c.point.y) for c in commands[:5]] == [
+        (d.point.x, d.point.y) for d in demands[:5]]
 
 
 def test_start_and_stop_services(harness_factory):

@@ -4,7 +4,13 @@ Trajectory generator node: publishes the demand end point, and the command point
 The demand is the path the end point should follow (the paper's sine by default, or a
 way-point file). The command is what the inverse solver is asked to realise: equal to
 the demand, unless a correction file (the learned command path of path correction,
-Eq. 8 and its iterations) is given.
+Eq. 8 and its iterations) is given; ``correction_file`` can be set between runs.
+
+``/flexure/demand_path`` and ``/flexure/command_path`` (``nav_msgs/Path``, latched) hold
+the planned paths, each pose stamped with its path time. They are published again when a
+run starts, with the header stamp set to when the path's first point is due: path time
+zero on the clock of the demand stamps, so that a recording of the run can be aligned
+with its path (path correction needs this).
 
 A run holds the first point for ``lead_in_s`` so that the actuators can reach it, runs
 the path, then holds the last point for ``lead_out_s`` and stops publishing (the
@@ -22,7 +28,7 @@ from flexure_ctrl.nodes.common import (COMMAND_TOPIC, DEMAND_PATH_TOPIC, DEMAND_
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
-from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.msg import ParameterType, SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
@@ -69,8 +75,8 @@ class TrajectoryGenerator(Node):
             'CSV/YAML way-point file of the demand; empty: the sine path', read_only=True))
         self.declare_parameter('correction_file', '', typed_descriptor(
             ParameterType.PARAMETER_STRING,
-            'learned command path (CSV t_s,x_m,y_m) for this run; empty: command = demand',
-            read_only=True))
+            'learned command path (CSV t_s,x_m,y_m) for the next runs; empty: command = '
+            'demand. Settable between runs; a file that does not fit the path is refused'))
         self.declare_parameter('lead_in_s', 2.0, float_descriptor(
             'hold at the first point before moving (s)', 0.0, 60.0, read_only=True))
         self.declare_parameter('lead_out_s', 0.5, float_descriptor(
@@ -98,8 +104,8 @@ class TrajectoryGenerator(Node):
         self._demand_message.header.frame_id = self.frame_id
         self._command_message = PointStamped()
         self._command_message.header.frame_id = self.frame_id
-        self.demand_path_publisher.publish(self._path_message(self.demand))
-        self.command_path_publisher.publish(self._path_message(self.command))
+        self._publish_paths(path_start_ns=0)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         # Runs only during a run: an idle 100 Hz timer still costs a Python process CPU.
         self.timer = self.create_timer(1.0 / self.get_parameter('rate_hz').value, self._tick,
                                        autostart=False)
@@ -110,7 +116,7 @@ class TrajectoryGenerator(Node):
         if self.get_parameter('autostart').value:
             self.start_run()
 
-    def _load_paths(self):
+    def _load_paths(self, correction_file=None):
         parameter = self.get_parameter
         waypoints = parameter('waypoints_file').value
         if waypoints:
@@ -123,7 +129,8 @@ class TrajectoryGenerator(Node):
                 period_s=parameter('path.period_s').value,
                 cycles=parameter('path.cycles').value,
                 start_phase_rad=parameter('path.start_phase_rad').value)
-        correction = parameter('correction_file').value
+        correction = (parameter('correction_file').value if correction_file is None
+                      else correction_file)
         if not correction:
             return demand, demand
         command = WaypointPath.from_file(correction)
@@ -133,11 +140,40 @@ class TrajectoryGenerator(Node):
                 f'path lasts {demand.duration_s} s: it was learned for another path')
         return demand, command
 
-    def _path_message(self, trajectory) -> Path:
-        """Whole planned path; each pose's stamp is its time since the run starts (s)."""
+    def _on_set_parameters(self, parameters):
+        """Load a new correction file between runs; refuse it during one, or if bad."""
+        for parameter in parameters:
+            if parameter.name != 'correction_file':
+                continue
+            if self.running:
+                return SetParametersResult(
+                    successful=False, reason='a run is in progress; set it between runs')
+            try:
+                self.demand, self.command = self._load_paths(parameter.value)
+            except (FlexureCtrlError, OSError) as error:
+                return SetParametersResult(successful=False, reason=str(error))
+            self._publish_paths(path_start_ns=0)
+            self.get_logger().info(
+                f'command path: {parameter.value}' if parameter.value
+                else 'command path: the demand (no correction)')
+        return SetParametersResult(successful=True)
+
+    def _publish_paths(self, path_start_ns: int) -> None:
+        self.demand_path_publisher.publish(self._path_message(self.demand, path_start_ns))
+        self.command_path_publisher.publish(self._path_message(self.command, path_start_ns))
+
+    def _path_message(self, trajectory, path_start_ns: int) -> Path:
+        """
+        Whole planned path; each pose's stamp is its time since the path starts (s).
+
+        The header stamp is when the path's first point is due in the current run (zero
+        before any run): a recording of the run holds its time reference.
+        """
         times, points, _ = trajectory.sample_at_rate(PATH_PREVIEW_RATE_HZ)
         message = Path()
         message.header.frame_id = self.frame_id
+        stamp = message.header.stamp
+        stamp.sec, stamp.nanosec = divmod(path_start_ns, 1_000_000_000)
         for t_s, (x_m, y_m) in zip(times, points):
             pose = PoseStamped()
             pose.header.frame_id = self.frame_id
@@ -154,6 +190,7 @@ class TrajectoryGenerator(Node):
 
     def start_run(self) -> None:
         self._run_start_ns = self.last_run_start_ns = self.get_clock().now().nanoseconds
+        self._publish_paths(self._run_start_ns + int(round(self.lead_in_s * 1e9)))
         self.timer.reset()
         self.get_logger().info(
             f'run started: {self.lead_in_s:.1f} s lead-in, {self.demand.duration_s:.3f} s '
