@@ -50,3 +50,7 @@ class TrajectoryError(FlexureCtrlError, ValueError):
 
 class CorrectionError(FlexureCtrlError, ValueError):
     """A recorded run cannot be used for path correction (missing or incomplete data)."""
+
+
+class BagError(FlexureCtrlError):
+    """A bag cannot be written or read, or a message type has no definition."""
