@@ -85,6 +85,19 @@ class SimulatedArm:
 
     def end_point_at(self, l01_m: float, l02_m: float) -> Tuple[float, float]:
         """Return the true end point ``(x, y)`` (m) for one pair of rod positions, fast."""
+        x1, y1, theta1, x2, y2, theta2 = self.true_joint_poses_at(l01_m, l02_m)
+        *_, x_end, y_end = chain_points(self.design.geometry, x1, y1, theta1, x2, y2, theta2,
+                                        trig=math)
+        return x_end, y_end
+
+    def true_joint_poses_at(self, l01_m: float, l02_m: float) -> Tuple[float, ...]:
+        """
+        Return both joints' true tip poses for one pair of rod positions, fast.
+
+        ``(x1, y1, theta1, x2, y2, theta2)`` (m, m, rad), each relative to its own root as
+        in the table (joint 1 in the rig frame, joint 2 in link 1's frame), with the
+        plant's scale, offset and sag: what a characterisation should measure.
+        """
         x1, y1, theta1 = self.table.pose_at(l01_m)
         x2, y2, theta2 = self.table.pose_at(l02_m)
         p = self.parameters
@@ -94,9 +107,19 @@ class SimulatedArm:
             sag1, sag2 = self._sag(x1, y1, theta1, x2, y2, theta2, trig=math)
             theta1 -= sag1
             theta2 -= sag2
-        *_, x_end, y_end = chain_points(self.design.geometry, x1, y1, theta1, x2, y2, theta2,
-                                        trig=math)
-        return x_end, y_end
+        return x1, y1, theta1, x2, y2, theta2
+
+    def output_bodies_at(self, l01_m: float, l02_m: float) -> Tuple[Tuple[float, ...], ...]:
+        """
+        Return the rig-frame poses of both joints' output bodies and the end point.
+
+        ``((x1, y1, theta1), (x2, y2, theta1 + theta2), (x_end, y_end))``: each joint's tip
+        position and absolute tip angle in the rig frame (m, rad), then the end point (m).
+        """
+        x1, y1, theta1, x2, y2, theta2 = self.true_joint_poses_at(l01_m, l02_m)
+        _, _, x_tip2, y_tip2, x_end, y_end = chain_points(
+            self.design.geometry, x1, y1, theta1, x2, y2, theta2, trig=math)
+        return (x1, y1, theta1), (x_tip2, y_tip2, theta1 + theta2), (x_end, y_end)
 
     def _sag(self, x1, y1, theta1, x2, y2, theta2, trig=np):
         """Extra bending of each joint under the links' weight (rad, downward positive)."""

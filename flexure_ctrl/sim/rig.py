@@ -9,6 +9,7 @@ Nodes reach it exactly as they reach the real rig, through python-can (``socketc
 instead of ``socketcan``) and a TCP socket: only their configuration differs.
 """
 
+import math
 import threading
 import time
 from typing import Optional
@@ -16,14 +17,41 @@ from typing import Optional
 import can
 from flexure_ctrl.core.design import Design
 from flexure_ctrl.core.tracker import RigTransform
+from flexure_ctrl.sim.config import SimConfigError
 from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
 from flexure_ctrl.sim.plant import PlantParameters, SimulatedArm
 from flexure_ctrl.sim.socketcand_server import SocketcandServer
 from flexure_ctrl.sim.tracker_server import TrackerServer
 import numpy as np
 
+# Targets on the joints' vertical output bodies (paper Fig. 4): (joint index, a or b).
+TIP_TARGETS = {'tip1_a': (0, 'a'), 'tip1_b': (0, 'b'), 'tip2_a': (1, 'a'), 'tip2_b': (1, 'b')}
+END_TARGET = 'end'
 LEAD_SCREW_KEYS = ('lag_s', 'max_speed_m_s', 'backlash_m', 'pot_noise_m', 'pot_quantum_m',
                    'drift_m_per_s', 'end_stop_m')
+
+
+def tip_target_points(arm: SimulatedArm, l01_m: float, l02_m: float, names,
+                      offsets_m: dict) -> dict:
+    """
+    Return the true rig-frame points of output-body targets for rod positions (m).
+
+    :param names: targets out of :data:`TIP_TARGETS`.
+    :param offsets_m: ``{'a': (along, left), 'b': (along, left)}``: where targets a and b
+        sit in their joint's tip frame (m).
+    :returns: ``{name: (x, y, 0.0)}`` (m).
+    """
+    joint1, joint2, _ = arm.output_bodies_at(l01_m, l02_m)
+    bodies = (joint1, joint2)
+    points = {}
+    for name in names:
+        joint, which = TIP_TARGETS[name]
+        x_m, y_m, theta_rad = bodies[joint]
+        along_m, left_m = offsets_m[which]
+        cos_t, sin_t = math.cos(theta_rad), math.sin(theta_rad)
+        points[name] = (x_m + cos_t * along_m - sin_t * left_m,
+                        y_m + sin_t * along_m + cos_t * left_m, 0.0)
+    return points
 
 
 class SimulatedRig:
@@ -71,6 +99,20 @@ class SimulatedRig:
         rig_from_tracker = RigTransform(rotation_rpy_rad=tuple(tracker['rotation_rpy_rad']),
                                         translation_m=tuple(tracker['translation_m']))
         self.targets = list(tracker['targets'])
+        unknown = [name for name in self.targets
+                   if name != END_TARGET and name not in TIP_TARGETS]
+        if unknown or not self.targets:
+            raise SimConfigError(
+                f'tracker.targets: unknown target(s) {unknown} (known: {END_TARGET}, '
+                f'{", ".join(TIP_TARGETS)})' if unknown else 'tracker.targets is empty')
+        self.tip_target_offsets_m = {'a': tuple(float(v) for v in tracker['tip_target_a_m']),
+                                     'b': tuple(float(v) for v in tracker['tip_target_b_m'])}
+        if math.dist(self.tip_target_offsets_m['a'], self.tip_target_offsets_m['b']) < 1e-3:
+            raise SimConfigError('tracker.tip_target_a_m and tip_target_b_m must be at least '
+                                 '1 mm apart')
+        self._tip_targets = [(name, *TIP_TARGETS[name]) for name in self.targets
+                             if name in TIP_TARGETS]
+        self._with_end = END_TARGET in self.targets
         self.tracker_server = TrackerServer(
             self._sample_targets, rate_hz=float(tracker['rate_hz']),
             noise_m=float(tracker['noise_m']),
@@ -88,9 +130,26 @@ class SimulatedRig:
         return self.arm.end_point_at(self.actuators[0].rod_position_m,
                                      self.actuators[1].rod_position_m)
 
+    def true_tip_targets(self) -> dict:
+        """
+        Return the true rig-frame points of the configured output-body targets now.
+
+        ``{'tip1_a': (x, y, 0.0), ...}`` (m): each target at its offset in its joint's tip
+        frame, from the joints' true response (the plant's deviations included).
+        """
+        return tip_target_points(self.arm, self.actuators[0].rod_position_m,
+                                 self.actuators[1].rod_position_m,
+                                 [name for name, *_ in self._tip_targets],
+                                 self.tip_target_offsets_m)
+
     def _sample_targets(self, now_ns: int) -> dict:
-        x_m, y_m = self.true_end_point()
-        return {'end': (x_m, y_m, 0.0)}
+        points = {}
+        if self._with_end:
+            x_m, y_m = self.true_end_point()
+            points[END_TARGET] = (x_m, y_m, 0.0)
+        if self._tip_targets:
+            points.update(self.true_tip_targets())
+        return points
 
     def start(self) -> 'SimulatedRig':
         """Start the CAN server, the drives' physics and the tracker stream."""
