@@ -1,14 +1,17 @@
 """
-``flexure-ctrl demo``: the paper's path on the simulated rig, end to end.
+``flexure-ctrl demo``: the paper's path on the simulated rig, learned run after run.
 
-Starts ``flexure-ctrl up --sim`` (the simulator and every node as processes), runs the
-path once, watches the end point on the tracker topic, then stops everything and prints
-the errors the paper's Table 1 reports (maximum and RMS, x and y), with plots like its
-Figs. 13 and 17. Path correction over iterations builds on this run.
+Starts ``flexure-ctrl up --sim`` (the simulator and every node as processes), then for
+each iteration: records a run of the path to a bag (the ``recorder`` node), computes the
+run's error against the demand (Eq. 7) and the next command path
+(``c_{k+1} = c_k + gamma Q(p - e_k)``; the first is the paper's Eq. 8), and hands it to
+``trajectory_generator`` for the next run. Iteration 0 is the original run; ``N``
+iterations are ``N`` corrections. At the end it prints the paper's Table 1 for the
+design and writes ``summary.json`` and plots like Figs. 13/16 and 17.
 """
 
 import argparse
-import json
+import datetime
 import os
 from pathlib import Path
 import signal
@@ -16,29 +19,50 @@ import subprocess
 import sys
 import threading
 import time
+from typing import List, Optional
 
-from flexure_ctrl.core.alignment import align
-import numpy as np
+from flexure_ctrl.cli import report_command
+from flexure_ctrl.core.correction import IterativeCorrector, path_errors
+from flexure_ctrl.core.runs import load_last_run
 
 LEAD_IN_S = 2.5
-LEAD_OUT_S = 0.5
+LEAD_OUT_S = 1.0
 UP_TIMEOUT_S = 120.0
+RECORDER_TIMEOUT_S = 60.0
+# Topics the recorder must have subscribed to before a run may start.
+RECORDED_BEFORE_START = ('/flexure/demand', '/flexure/command', '/flexure/demand_path',
+                         '/flexure/tracker/end')
+
+
+class DemoError(RuntimeError):
+    """The demo could not go on (the message says why)."""
 
 
 def add_parser(commands) -> None:
     parser = commands.add_parser(
-        'demo', help="run the paper's path on the simulated rig and report the errors",
+        'demo', help="run the paper's path on the simulated rig and learn it run after run",
         description='Start the simulated rig and all nodes (flexure-ctrl up --sim), run the '
-                    "paper's path once (x = 1015 mm, y = +-200 mm sine), record the end point "
-                    'from the laser tracker, stop everything, and print the maximum and RMS '
-                    'errors in x and y; writes summary.json and demo.png to --out.')
+                    "paper's path (x = 1015 mm, y = +-200 mm sine) and record it to a bag, "
+                    'correct the command path from the recorded error (Eq. 8, then '
+                    'c_next = c + gamma Q(p - e)) and run again, --iterations times; then '
+                    "print the paper's Table 1 (maximum errors and % reduction) and write "
+                    'summary.json, trajectories.png and errors.png to --out.')
     parser.add_argument('--design', default='cfa', help='design name (default: %(default)s)')
+    parser.add_argument('--iterations', type=int, default=3, metavar='N',
+                        help='corrections after the original run, 0 or more '
+                             '(default: %(default)s)')
     parser.add_argument('--period', type=float, default=14.0, metavar='S',
                         help='period of the path in s (default: %(default)s, as in the paper)')
+    parser.add_argument('--gain', type=float, default=1.0,
+                        help='initial learning gain gamma, in (0, 2] (default: %(default)s)')
     parser.add_argument('--sim-config', type=Path, metavar='FILE',
                         help='simulator knobs overriding config/simulator.yaml')
     parser.add_argument('--out', type=Path, default=Path('out/demo'), metavar='DIR',
-                        help='output folder (default: %(default)s)')
+                        help='output folder: summary, plots, command paths '
+                             '(default: %(default)s)')
+    parser.add_argument('--bag-dir', type=Path, default=Path('bags'), metavar='DIR',
+                        help='where the runs are recorded, one bag per iteration '
+                             '(default: %(default)s)')
     parser.add_argument('--can-port', type=int, metavar='PORT',
                         help='socketcand port of the simulated rig (default: config/sim.yaml)')
     parser.add_argument('--tracker-port', type=int, metavar='PORT',
@@ -48,65 +72,154 @@ def add_parser(commands) -> None:
     parser.set_defaults(run=run)
 
 
-def _stamp_s(message) -> float:
-    return message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec
+class _Process:
+    """A child process whose output is read line by line (and echoed unless quiet)."""
+
+    def __init__(self, command: List[str], quiet: bool, prefix: str = '') -> None:
+        self.lines: List[str] = []
+        self._changed = threading.Condition()
+        self.popen = subprocess.Popen(command, stdout=subprocess.PIPE,
+                                      stderr=subprocess.STDOUT, text=True, bufsize=1)
+        self._quiet = quiet
+        self._prefix = prefix
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.popen.stdout:
+            if not self._quiet and 'incomplete message' not in line:
+                sys.stdout.write(self._prefix + line)
+            with self._changed:
+                self.lines.append(line.rstrip('\n'))
+                self._changed.notify_all()
+        with self._changed:
+            self._changed.notify_all()
+
+    def wait_for_line(self, predicate, timeout_s: float, start: int = 0) -> Optional[str]:
+        """Return the first line from index ``start`` on that satisfies ``predicate``."""
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while True:
+                for line in self.lines[start:]:
+                    if predicate(line):
+                        return line
+                start = len(self.lines)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0 or (self.popen.poll() is not None
+                                        and not self._reader.is_alive()):
+                    return None
+                self._changed.wait(min(remaining, 0.5))
+
+    def interrupt(self, timeout_s: float) -> Optional[int]:
+        """Ctrl-C, then wait; kill if it does not end. Idempotent."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGINT)
+        try:
+            return self.popen.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.popen.kill()
+            self.popen.wait()
+            return None
 
 
-class _Watcher:
-    """A node in this process that keeps the demand and the tracked end point."""
+class _Operator:
+    """A node in this process that starts runs and sets the correction file."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
-        from geometry_msgs.msg import PointStamped
 
         self._rclpy = rclpy
         rclpy.init()
         self.node = rclpy.create_node('flexure_ctrl_demo')
-        self.demand = []
-        self.tracked = []
-        self.node.create_subscription(PointStamped, '/flexure/demand', self.demand.append, 1000)
-        self.node.create_subscription(PointStamped, '/flexure/tracker/end',
-                                      self.tracked.append, 1000)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
-    def _spin(self):
+    def _spin(self) -> None:
         from rclpy.executors import ExternalShutdownException
         try:
             self.executor.spin()
         except ExternalShutdownException:
             pass
 
-    def start_run(self) -> bool:
-        """Start the path once the loops and the solver are connected (discovery lags)."""
-        from std_srvs.srv import Trigger
-        deadline = time.monotonic() + 30.0
-        while not (self.node.count_subscribers('/flexure/actuator_setpoints') >= 2
-                   and self.node.count_publishers('/flexure/actuator_setpoints') >= 1
-                   and self.node.count_subscribers('/flexure/command') >= 1):
+    def wait_until_connected(self, timeout_s: float) -> None:
+        """Wait until the loops and the solver are wired (discovery lags the start)."""
+        node = self.node
+        deadline = time.monotonic() + timeout_s
+        while not (node.count_subscribers('/flexure/actuator_setpoints') >= 2
+                   and node.count_publishers('/flexure/actuator_setpoints') >= 1
+                   and node.count_subscribers('/flexure/command') >= 1):
             if time.monotonic() > deadline:
-                return False
+                raise DemoError('the nodes did not connect within '
+                                f'{timeout_s:.0f} s (ROS discovery)')
             time.sleep(0.05)
-        client = self.node.create_client(Trigger, '/trajectory_generator/start')
-        if not client.wait_for_service(timeout_sec=30.0):
-            return False
-        future = client.call_async(Trigger.Request())
-        deadline = time.monotonic() + 10.0
-        while not future.done() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        return future.done() and future.result().success
 
-    def close(self):
+    def _call(self, service_type, name: str, request, timeout_s: float = 10.0):
+        client = self.node.create_client(service_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout_s):
+                raise DemoError(f'service {name} is not available')
+            future = client.call_async(request)
+            deadline = time.monotonic() + timeout_s
+            while not future.done():
+                if time.monotonic() > deadline:
+                    raise DemoError(f'service {name} did not answer in {timeout_s:.0f} s')
+                time.sleep(0.02)
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def start_run(self) -> None:
+        from std_srvs.srv import Trigger
+        response = self._call(Trigger, '/trajectory_generator/start', Trigger.Request())
+        if not response.success:
+            raise DemoError(f'trajectory_generator/start: {response.message}')
+
+    def set_correction_file(self, path: str) -> None:
+        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+        from rcl_interfaces.srv import SetParameters
+        request = SetParameters.Request(parameters=[Parameter(
+            name='correction_file', value=ParameterValue(
+                type=ParameterType.PARAMETER_STRING, string_value=path))])
+        response = self._call(SetParameters, '/trajectory_generator/set_parameters', request)
+        result = response.results[0]
+        if not result.successful:
+            raise DemoError(f'trajectory_generator refused the command path {path}: '
+                            f'{result.reason}')
+
+    def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()
         self._rclpy.try_shutdown()
 
 
-def run(arguments: argparse.Namespace) -> int:
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+class _Progress:
+    """A one-line progress bar on a terminal; plain lines otherwise."""
+
+    WIDTH = 30
+
+    def __init__(self, total_runs: int) -> None:
+        self.total_runs = total_runs
+        self._tty = sys.stderr.isatty()
+
+    def run(self, index: int, elapsed_s: float, run_s: float) -> None:
+        if not self._tty:
+            return
+        done = (index + min(1.0, elapsed_s / run_s)) / self.total_runs
+        filled = int(round(done * self.WIDTH))
+        sys.stderr.write(f'\r[{"#" * filled}{"." * (self.WIDTH - filled)}] run '
+                         f'{index + 1}/{self.total_runs}  {elapsed_s:5.1f}/{run_s:.1f} s ')
+        sys.stderr.flush()
+
+    def line(self, text: str) -> None:
+        if self._tty:
+            sys.stderr.write('\r' + ' ' * (self.WIDTH + 40) + '\r')
+        print(text, flush=True)
+
+
+def _up_command(arguments: argparse.Namespace) -> List[str]:
     command = [sys.executable, '-m', 'flexure_ctrl.cli.main', 'up', '--sim',
                '--design', arguments.design, '--period', str(arguments.period),
                '--ros-arg', f'trajectory_generator:lead_in_s:={LEAD_IN_S}',
@@ -117,94 +230,100 @@ def run(arguments: argparse.Namespace) -> int:
                          ('--tracker-port', arguments.tracker_port)):
         if port:
             command += [option, str(port)]
-    up = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, bufsize=1)
-    ready = threading.Event()
+    return command
 
-    def echo():
-        for line in up.stdout:
-            if not arguments.quiet and 'incomplete message' not in line:
-                sys.stdout.write(line)
-            if 'all processes up' in line:
-                ready.set()
 
-    threading.Thread(target=echo, daemon=True).start()
-    watcher = None
+def _start_recorder(bag_dir: Path, bag_name: str, quiet: bool) -> _Process:
+    recorder = _Process([sys.executable, '-m', 'flexure_ctrl.nodes.recorder', '--ros-args',
+                         '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}'],
+                        quiet, prefix='[recorder] ')
+    for topic in RECORDED_BEFORE_START:
+        if recorder.wait_for_line(lambda line, t=topic: f'recording {t} [' in line,
+                                  RECORDER_TIMEOUT_S) is None:
+            recorder.interrupt(10.0)
+            raise DemoError(f'the recorder did not subscribe to {topic}:\n'
+                            + '\n'.join(recorder.lines[-10:]))
+    return recorder
+
+
+def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
+                arguments: argparse.Namespace, progress: _Progress, index: int) -> Path:
+    """Record one run of the path; return its bag folder."""
+    recorder = _start_recorder(bag_dir, bag_name, arguments.quiet)
     try:
-        deadline = time.monotonic() + UP_TIMEOUT_S
-        while not ready.wait(0.2):
-            if up.poll() is not None or time.monotonic() > deadline:
-                print('flexure-ctrl demo: the simulated rig and nodes did not come up',
-                      file=sys.stderr)
-                return 1
-        watcher = _Watcher()
-        if not watcher.start_run():
-            print('flexure-ctrl demo: trajectory_generator/start failed', file=sys.stderr)
-            return 1
+        mark = len(up.lines)
+        operator.start_run()
         run_s = LEAD_IN_S + arguments.period + LEAD_OUT_S
-        print(f'[demo] running the path: {run_s:.1f} s', flush=True)
-        time.sleep(run_s + 0.5)
-    except KeyboardInterrupt:
-        return 130
+        started = time.monotonic()
+        while up.wait_for_line(lambda line: 'run finished' in line, 0.5, mark) is None:
+            elapsed_s = time.monotonic() - started
+            progress.run(index, elapsed_s, run_s)
+            if up.popen.poll() is not None:
+                raise DemoError('flexure-ctrl up ended during the run:\n'
+                                + '\n'.join(up.lines[-20:]))
+            if elapsed_s > run_s + 30.0:
+                raise DemoError(f'the run did not finish within {run_s + 30.0:.0f} s')
+        progress.run(index, run_s, run_s)
     finally:
-        if watcher is not None:
-            watcher.close()
-        if up.poll() is None:
-            up.send_signal(signal.SIGINT)
-        try:
-            up.wait(timeout=60.0)
-        except subprocess.TimeoutExpired:
-            up.kill()
-    return report(arguments, watcher.demand, watcher.tracked)
+        if recorder.interrupt(RECORDER_TIMEOUT_S) != 0:
+            progress.line(f'[demo] the recorder of {bag_name} did not end cleanly:\n'
+                          + '\n'.join(recorder.lines[-10:]))
+    return bag_dir / bag_name
 
 
-def report(arguments, demand, tracked) -> int:
-    if not demand or not tracked:
-        print('flexure-ctrl demo: no demand or no tracker points were received',
-              file=sys.stderr)
+def run(arguments: argparse.Namespace) -> int:
+    if arguments.iterations < 0:
+        raise DemoError('--iterations must be 0 or more')
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
+    out = arguments.out
+    out.mkdir(parents=True, exist_ok=True)
+    up = _Process(_up_command(arguments), arguments.quiet)
+    operator = None
+    corrector = IterativeCorrector(gain=arguments.gain)
+    progress = _Progress(arguments.iterations + 1)
+    rows = []
+    try:
+        if up.wait_for_line(lambda line: 'all processes up' in line, UP_TIMEOUT_S) is None:
+            raise DemoError('the simulated rig and nodes did not come up:\n'
+                            + '\n'.join(up.lines[-20:]))
+        operator = _Operator()
+        operator.wait_until_connected(60.0)
+        for index in range(arguments.iterations + 1):
+            bag = _record_run(up, operator, arguments.bag_dir,
+                              f'demo_{arguments.design}_{stamp}_iteration_{index}', arguments,
+                              progress, index)
+            errors = path_errors(load_last_run(bag))
+            corrector.add_run(errors)
+            row = report_command.iteration_summary(index, bag, errors)
+            rows.append(row)
+            progress.line(f'[demo] iteration {index}: max |e_x| {row["max_abs_error_x_mm"]:.3f}'
+                          f' mm, max |e_y| {row["max_abs_error_y_mm"]:.3f} mm  ({bag})')
+            if index == arguments.iterations:
+                break
+            command = corrector.next_command()
+            if command is None:
+                progress.line(f'[demo] {corrector.note}')
+                break
+            if corrector.note:
+                progress.line(f'[demo] {corrector.note}')
+            row['gain'] = corrector.gain
+            command_file = command.write_csv(out / f'command_{index + 1}.csv')
+            operator.set_correction_file(str(command_file.resolve()))
+    except DemoError as error:
+        print(f'flexure-ctrl demo: {error}', file=sys.stderr)
         return 1
-    run = align([_stamp_s(m) for m in demand], [[m.point.x, m.point.y] for m in demand],
-                [_stamp_s(m) for m in tracked], [[m.point.x, m.point.y] for m in tracked])
-    t_s, desired, realised, error = run.t_s, run.desired_m, run.realised_m, run.error_m
-    summary = {
-        'design': arguments.design, 'period_s': arguments.period, 'points': int(len(t_s)),
-        'max_abs_error_x_mm': float(np.abs(error[:, 0]).max() * 1e3),
-        'max_abs_error_y_mm': float(np.abs(error[:, 1]).max() * 1e3),
-        'rms_error_x_mm': float(np.sqrt(np.mean(error[:, 0] ** 2)) * 1e3),
-        'rms_error_y_mm': float(np.sqrt(np.mean(error[:, 1] ** 2)) * 1e3),
-    }
-    arguments.out.mkdir(parents=True, exist_ok=True)
-    (arguments.out / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
-    _plot(arguments.out / 'demo.png', arguments.design, t_s, desired, realised, error)
-    print(f'\n{arguments.design}: uncorrected run of the path ({len(t_s)} tracker points)')
-    print(f'{"":14}{"max |e| (mm)":>14}{"rms e (mm)":>12}')
-    for axis, name in ((0, 'x'), (1, 'y')):
-        print(f'{name:14}{summary[f"max_abs_error_{name}_mm"]:14.2f}'
-              f'{summary[f"rms_error_{name}_mm"]:12.2f}')
-    print(f'wrote {arguments.out / "summary.json"} and {arguments.out / "demo.png"}')
+    finally:
+        if operator is not None:
+            operator.close()
+        up.interrupt(60.0)
+    report_command.add_reductions(rows)
+    report_command.print_table(arguments.design, rows)
+    summary = {'design': arguments.design, 'period_s': arguments.period,
+               'iterations': rows,
+               'paper_table_1': report_command.PAPER_TABLE_1.get(arguments.design)}
+    summary_path = report_command.write_summary(out, summary)
+    errors = [iteration.errors for iteration in corrector.iterations]
+    pictures = report_command.plot(out, arguments.design, errors)
+    print(f'wrote {summary_path}, ' + ', '.join(str(p) for p in pictures))
     return 0
-
-
-def _plot(png_path: Path, design: str, t_s, desired, realised, error) -> None:
-    import matplotlib
-    matplotlib.use('Agg')
-    from matplotlib import pyplot
-
-    figure, (left, right) = pyplot.subplots(1, 2, figsize=(11, 4.8))
-    left.plot(desired[:, 0] * 1e3, desired[:, 1] * 1e3, 'k-', lw=2, label='desired')
-    left.plot(realised[:, 0] * 1e3, realised[:, 1] * 1e3, '.', ms=1.5, label='realised')
-    left.set_xlabel('x (mm)')
-    left.set_ylabel('y (mm)')
-    left.set_title(f'{design}: end-point trajectory (cf. Fig. 13)')
-    left.legend()
-    left.grid(True)
-    right.plot(t_s, error[:, 0] * 1e3, label='$\\varepsilon_x$')
-    right.plot(t_s, error[:, 1] * 1e3, label='$\\varepsilon_y$')
-    right.set_xlabel('time (s)')
-    right.set_ylabel('error (mm)')
-    right.set_title('errors against time (cf. Fig. 17)')
-    right.legend()
-    right.grid(True)
-    figure.tight_layout()
-    figure.savefig(png_path, dpi=110)
-    pyplot.close(figure)

@@ -1,0 +1,156 @@
+"""Runs read back from bags, and the ``correct`` and ``report`` commands on them."""
+
+import json
+
+from flexure_ctrl.cli.main import main
+from flexure_ctrl.core.bag import BagWriter
+from flexure_ctrl.core.correction import corrected_command, path_errors
+from flexure_ctrl.core.errors import CorrectionError
+from flexure_ctrl.core.runs import load_runs
+from flexure_ctrl.core.trajectory import SinePath, WaypointPath
+from geometry_msgs.msg import PointStamped, PoseStamped
+from nav_msgs.msg import Path
+import numpy as np
+import pytest
+from rclpy.serialization import serialize_message
+
+PERIOD_S = 4.0
+LEAD_IN_S = 0.5
+LEAD_OUT_S = 0.3
+SINE = SinePath(period_s=PERIOD_S)
+T0_NS = 1_800_000_000_000_000_000
+
+
+def stamped(message, t_ns):
+    message.header.stamp.sec, message.header.stamp.nanosec = divmod(int(t_ns), 10**9)
+    message.header.frame_id = 'rig'
+    return message
+
+
+def point(t_ns, xy):
+    message = stamped(PointStamped(), t_ns)
+    message.point.x, message.point.y = float(xy[0]), float(xy[1])
+    return message
+
+
+def demand_path(path_start_ns):
+    message = stamped(Path(), path_start_ns)
+    for t_s in np.linspace(0.0, PERIOD_S, 11):
+        pose = stamped(PoseStamped(), round(t_s * 1e9))
+        pose.pose.position.x, pose.pose.position.y = SINE.sample(t_s)[0]
+        message.poses.append(pose)
+    return message
+
+
+def realised(command_xy):
+    """Realise a command as the model rig does: 1 mm offset in x, 95 % of y."""
+    return np.column_stack([command_xy[:, 0] + 1e-3, 0.95 * command_xy[:, 1]])
+
+
+def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=True):
+    """Record runs of the sine as the nodes publish them; return the bag folder."""
+    with BagWriter(folder) as bag:
+        for topic, type_name in (('/flexure/demand', 'geometry_msgs/msg/PointStamped'),
+                                 ('/flexure/command', 'geometry_msgs/msg/PointStamped'),
+                                 ('/flexure/tracker/end', 'geometry_msgs/msg/PointStamped'),
+                                 ('/flexure/demand_path', 'nav_msgs/msg/Path')):
+            bag.add_topic(topic, type_name)
+        bag.write('/flexure/demand_path', serialize_message(demand_path(0)), T0_NS - 10**9)
+        for path_start_ns in path_starts_ns:
+            run_start_ns = path_start_ns - int(LEAD_IN_S * 1e9)
+            if announce:  # what trajectory_generator publishes when a run starts
+                bag.write('/flexure/demand_path',
+                          serialize_message(demand_path(path_start_ns)), run_start_ns)
+            ticks = np.arange(run_start_ns + 10**7, path_start_ns + (PERIOD_S + LEAD_OUT_S)
+                              * 1e9, 10**7).astype(np.int64)
+            tracker = np.arange(run_start_ns, ticks[-1], 2 * 10**6).astype(np.int64)
+            events = []
+            t_path = (ticks - path_start_ns) / 1e9
+            demand = SINE.sample(np.clip(t_path, 0.0, PERIOD_S))[0]
+            command = demand if command_of_t is None else command_of_t(t_path)
+            for t_ns, p, c in zip(ticks, demand, command):
+                events.append((int(t_ns), '/flexure/demand', point(t_ns, p)))
+                events.append((int(t_ns), '/flexure/command', point(t_ns, c)))
+            tracker_path_s = (tracker - path_start_ns) / 1e9
+            keep = np.ones(tracker.size, bool) if drop is None else ~drop(tracker_path_s)
+            tracked_command = (SINE.sample(np.clip(tracker_path_s, 0.0, PERIOD_S))[0]
+                               if command_of_t is None else command_of_t(tracker_path_s))
+            for t_ns, xy in zip(tracker[keep], realised(tracked_command)[keep]):
+                events.append((int(t_ns), '/flexure/tracker/end', point(t_ns, xy)))
+            for t_ns, topic, message in sorted(events, key=lambda e: e[0]):
+                bag.write(topic, serialize_message(message), t_ns)
+    return folder
+
+
+def test_runs_are_split_and_aligned_to_their_path_start(tmp_path):
+    starts = [T0_NS, T0_NS + 20 * 10**9]
+    runs = load_runs(write_runs(tmp_path / 'two_runs', starts))
+    assert [r.path_start_ns for r in runs] == starts
+    for run in runs:
+        assert run.duration_s == PERIOD_S
+        errors = path_errors(run)
+        # The model rig's error: 1 mm in x, 5 % of y (the demand between its 100 Hz samples
+        # is interpolated linearly: within 1e-5 m on this fast sine).
+        expected_y = 0.05 * SINE.sample(errors.sample_t_s.clip(0.0, PERIOD_S))[0][:, 1]
+        assert np.allclose(errors.sample_error_m[:, 0], -1e-3, atol=1e-9)
+        assert np.allclose(errors.sample_error_m[:, 1], expected_y, atol=1e-5)
+
+
+def test_a_bag_without_the_path_start_is_refused_with_the_reason(tmp_path):
+    # Only the path published when the node started (stamp zero): the recorder was
+    # started after the run had begun.
+    late = write_runs(tmp_path / 'late', [T0_NS], announce=False)
+    with pytest.raises(CorrectionError, match='no path start .* start the recorder before'):
+        load_runs(late)
+    folder = tmp_path / 'no_tracker'
+    with BagWriter(folder) as bag:
+        bag.add_topic('/flexure/demand', 'geometry_msgs/msg/PointStamped')
+        bag.write('/flexure/demand', serialize_message(point(T0_NS, (1.0, 0.0))), T0_NS)
+    with pytest.raises(CorrectionError, match='no /flexure/command, /flexure/demand_path, '
+                                              '/flexure/tracker/end recorded'):
+        load_runs(folder)
+
+
+def test_correct_writes_the_next_command_path(tmp_path, capsys):
+    bag = write_runs(tmp_path / 'run_0', [T0_NS])
+    out = tmp_path / 'command_1.csv'
+    assert main(['correct', str(bag), '--out', str(out), '--gain', '0.8']) == 0
+    written = WaypointPath.from_file(out)
+    expected = corrected_command(path_errors(load_runs(bag)[-1]), gain=0.8)
+    assert written.duration_s == pytest.approx(PERIOD_S, abs=1e-6)
+    assert np.allclose(written.sample(expected.t_s)[0], expected.points_m, atol=1e-8)
+    assert 'max |e_y|' in capsys.readouterr().out
+
+
+def test_correct_then_report_shows_the_reduction(tmp_path, capsys):
+    first = write_runs(tmp_path / 'run_0', [T0_NS])
+    command_file = tmp_path / 'command_1.csv'
+    assert main(['correct', str(first), '--out', str(command_file)]) == 0
+    learned = WaypointPath.from_file(command_file)
+    second = write_runs(tmp_path / 'run_1', [T0_NS + 30 * 10**9],
+                        command_of_t=lambda t: learned.sample(np.clip(t, 0.0, PERIOD_S))[0])
+    out = tmp_path / 'report'
+    assert main(['report', str(first), str(second), '--design', 'cfa',
+                 '--out', str(out)]) == 0
+    summary = json.loads((out / 'summary.json').read_text())
+    rows = summary['iterations']
+    assert [r['iteration'] for r in rows] == [0, 1]
+    assert rows[1]['bag'] == str(second)
+    assert rows[0]['max_abs_error_x_mm'] == pytest.approx(1.0, abs=1e-3)
+    assert rows[0]['max_abs_error_y_mm'] == pytest.approx(10.0, abs=1e-2)
+    # The model rig is linear: one correction leaves 5 % of the y error, and x exact.
+    assert rows[1]['reduction_x_percent'] > 99.0
+    assert rows[1]['reduction_y_percent'] == pytest.approx(95.0, abs=0.5)
+    printed = capsys.readouterr().out
+    assert 'Table 1' in printed and 'paper, cfa' in printed
+    for picture in ('trajectories.png', 'errors.png'):
+        assert (out / picture).stat().st_size > 10_000
+
+
+def test_tracker_dropouts_are_not_learned(tmp_path):
+    bag = write_runs(tmp_path / 'gappy', [T0_NS], drop=lambda t: (t > 1.0) & (t < 1.5))
+    out = tmp_path / 'command.csv'
+    assert main(['correct', str(bag), '--out', str(out)]) == 0
+    learned = WaypointPath.from_file(out)
+    inside = np.linspace(1.05, 1.45, 9)
+    assert np.allclose(learned.sample(inside)[0], SINE.sample(inside)[0], atol=1e-9)
