@@ -18,6 +18,8 @@ CONSOLE_SCRIPTS = [
     'inverse_solver = flexure_ctrl.nodes.inverse_solver:main',
     'actuator_loop = flexure_ctrl.nodes.actuator_loop:main',
     'tracker_bridge = flexure_ctrl.nodes.tracker_bridge:main',
+    'recorder = flexure_ctrl.nodes.recorder:main',
+    'player = flexure_ctrl.nodes.player:main',
 ]
 
 

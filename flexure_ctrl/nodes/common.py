@@ -23,6 +23,8 @@ ACTUATOR_NAMES = ('actuator_1', 'actuator_2')
 # Topic and service names: the package's public interface (README lists them).
 DEMAND_TOPIC = '/flexure/demand'
 DEMAND_PATH_TOPIC = '/flexure/demand_path'
+# Also defined in trajectory_generator (which publishes it); the same string.
+COMMAND_PATH_TOPIC = '/flexure/command_path'
 COMMAND_TOPIC = '/flexure/command'
 SETPOINTS_TOPIC = '/flexure/actuator_setpoints'
 DIAGNOSTICS_TOPIC = '/diagnostics'

@@ -1,0 +1,175 @@
+"""
+Recorder node: record the run's topics into a rosbag2-compatible MCAP bag.
+
+Parameters: ``topics`` (the topics to record; empty records every topic in the graph),
+``bag_dir`` and ``bag_name`` (the bag is the folder ``<bag_dir>/<bag_name>``; the name
+defaults to ``run_<YYYYmmdd_HHMMSS>``, local time), ``discovery_period_s`` (how often
+the graph is polled for topics that appeared) and ``flush_period_s`` (the longest time a
+received message stays in memory only).
+
+A topic is subscribed once it has a publisher in the graph, with the type the graph
+reports, raw (the serialized bytes go to the bag as they are: recording costs no
+deserialisation) and with a QoS that matches every publisher: reliable if they all are,
+transient-local if they all are, so latched paths sent before the recorder started are
+still recorded. Each message is stored with the time it was received as log time and
+the publisher's source timestamp as publish time; the publishers' offered QoS go into
+the bag (what ``ros2 bag play`` and the ``player`` node replay with).
+
+The log says ``bag: <folder>`` at start and ``recording <topic> [<type>]`` for each
+topic it starts recording, so a supervising process can wait for those lines.
+:meth:`Recorder.safe_stop` (run by Ctrl-C or SIGTERM) closes the bag: the file is then
+complete. A killed recorder leaves every message received up to ``flush_period_s``
+before the kill readable (see :mod:`flexure_ctrl.core.bag`).
+"""
+
+import functools
+from pathlib import Path
+import time
+from typing import Dict, List, Optional, Set
+
+from flexure_ctrl.core.bag import BagError, BagWriter
+from flexure_ctrl.nodes.bag_qos import message_class, qos_to_dict, subscription_qos
+from flexure_ctrl.nodes.common import actuator_state_topic, COMMAND_PATH_TOPIC, COMMAND_TOPIC
+from flexure_ctrl.nodes.common import DEMAND_PATH_TOPIC, DEMAND_TOPIC, DIAGNOSTICS_TOPIC
+from flexure_ctrl.nodes.common import float_descriptor, run_node, SETPOINTS_TOPIC
+from flexure_ctrl.nodes.common import tracker_topic, typed_descriptor
+from rcl_interfaces.msg import ParameterType
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+
+# The topics of a run, recorded by default.
+RUN_TOPICS = [
+    DEMAND_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC, COMMAND_PATH_TOPIC, SETPOINTS_TOPIC,
+    actuator_state_topic('actuator_1'), actuator_state_topic('actuator_2'),
+    tracker_topic('end'), DIAGNOSTICS_TOPIC,
+]
+# Never recorded when recording "every topic": the graph's own plumbing.
+_GRAPH_TOPICS = ('/rosout', '/parameter_events')
+
+
+def default_bag_name(now_s: Optional[float] = None) -> str:
+    """Return ``run_<YYYYmmdd_HHMMSS>`` in local time (now by default)."""
+    return time.strftime('run_%Y%m%d_%H%M%S', time.localtime(now_s))
+
+
+class Recorder(Node):
+    """Record topics, raw, into one bag folder."""
+
+    def __init__(self, node_name: str = 'recorder', **kwargs) -> None:
+        """
+        Declare parameters, open the bag and start watching the graph.
+
+        :param node_name: default node name (remapped with ``__node:=``).
+        :param kwargs: passed to :class:`rclpy.node.Node` (context, cli_args, ...).
+        :raises flexure_ctrl.core.errors.BagError: the bag folder exists and is not empty.
+        :raises rclpy.exceptions.InvalidParameterValueException: a value out of range.
+        """
+        super().__init__(node_name, **kwargs)
+        self.declare_parameter('topics', RUN_TOPICS, typed_descriptor(
+            ParameterType.PARAMETER_STRING_ARRAY,
+            'topics to record; empty: every topic in the graph', read_only=True))
+        self.declare_parameter('bag_dir', 'bags', typed_descriptor(
+            ParameterType.PARAMETER_STRING, 'folder the bag folder is created in',
+            read_only=True))
+        self.declare_parameter('bag_name', '', typed_descriptor(
+            ParameterType.PARAMETER_STRING,
+            "bag folder name; '' gives run_<YYYYmmdd_HHMMSS> (local time)", read_only=True))
+        self.declare_parameter('discovery_period_s', 0.1, float_descriptor(
+            'how often the graph is polled for new topics (s)', 0.01, 10.0, read_only=True))
+        self.declare_parameter('flush_period_s', 0.5, float_descriptor(
+            'longest time a received message is held in memory only (s)', 0.01, 10.0,
+            read_only=True))
+        # [''] (what `-p "topics:=['']"` gives) means every topic, like an empty list.
+        self.wanted: List[str] = [t for t in self.get_parameter('topics').value or [] if t]
+        name = self.get_parameter('bag_name').value or default_bag_name()
+        self.bag_path = Path(self.get_parameter('bag_dir').value) / name
+        self.writer = BagWriter(self.bag_path,
+                                flush_period_s=self.get_parameter('flush_period_s').value)
+        self.recorded = 0
+        self.dropped = 0
+        self._recording: Dict[str, str] = {}
+        self._topic_subscriptions = []
+        self._skipped: Set[str] = set()
+        self._stopped = False
+        self.get_logger().info(f'bag: {self.bag_path}')
+        # Steady time: the polling must not jump with the wall clock.
+        self.discovery_timer = self.create_timer(
+            self.get_parameter('discovery_period_s').value, self.discover,
+            clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.discover()
+
+    @property
+    def recording(self) -> Dict[str, str]:
+        """Return the topics being recorded, topic -> type."""
+        return dict(self._recording)
+
+    def discover(self) -> None:
+        """Subscribe to every wanted topic that now has a publisher."""
+        if self._stopped:
+            return
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._recording or topic in self._skipped:
+                continue
+            if self.wanted and topic not in self.wanted:
+                continue
+            if not self.wanted and topic in _GRAPH_TOPICS:
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue  # only subscribers so far: the publishers' QoS is not known yet
+            self._start_recording(topic, types, publishers)
+
+    def _start_recording(self, topic: str, types: List[str], publishers) -> None:
+        type_name = types[0]
+        if len(types) > 1:
+            self.get_logger().warning(
+                f'{topic} has several types ({", ".join(types)}); recording {type_name}')
+        publishers = [p for p in publishers if p.topic_type == type_name] or publishers
+        try:
+            message_type = message_class(type_name)
+            self.writer.add_topic(
+                topic, type_name, [qos_to_dict(p.qos_profile) for p in publishers],
+                type_description_hash=str(publishers[0].topic_type_hash))
+        except BagError as error:
+            self._skipped.add(topic)
+            self.get_logger().error(f'not recording {topic}: {error}')
+            return
+        self._topic_subscriptions.append(self.create_subscription(
+            message_type, topic, functools.partial(self._on_message, topic),
+            subscription_qos([p.qos_profile for p in publishers]), raw=True))
+        self._recording[topic] = type_name
+        self.get_logger().info(f'recording {topic} [{type_name}]')
+
+    def _on_message(self, topic: str, data: bytes, info: dict) -> None:
+        received_ns = info.get('received_timestamp') or time.time_ns()
+        source_ns = info.get('source_timestamp') or received_ns
+        try:
+            self.writer.write(topic, data, received_ns, source_ns)
+        except BagError:
+            # A message racing safe_stop(): the bag is already complete without it.
+            self.dropped += 1
+            return
+        self.recorded += 1
+
+    def safe_stop(self) -> None:
+        """Close the bag (complete and readable from then on); idempotent."""
+        if self._stopped:
+            return
+        self._stopped = True
+        self.discovery_timer.cancel()
+        self.writer.close()
+        self.get_logger().info(
+            f'bag closed: {self.bag_path} ({self.writer.message_count} messages)')
+
+    def destroy_node(self) -> None:
+        """Close the bag before the node's entities go away."""
+        self.safe_stop()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    run_node(Recorder, args)
+
+
+if __name__ == '__main__':
+    main()
