@@ -59,14 +59,18 @@ class SimulatedArm:
 
     def joint_poses(self, l01_m, l02_m) -> Tuple[np.ndarray, ...]:
         """Return the tip poses ``(x1, y1, theta1, x2, y2, theta2)`` the table predicts."""
-        low, high = self.table.l0_min_m, self.table.l0_max_m
-        # Rods can overrun the characterised range up to the end stops; the table's
-        # last sample is the best knowledge there.
-        l01 = np.clip(np.asarray(l01_m, float), low, high).ravel()
-        l02 = np.clip(np.asarray(l02_m, float), low, high).ravel()
-        x1, y1, theta1 = self.table.components(l01)[:3]
-        x2, y2, theta2 = self.table.components(l02)[:3]
-        return x1, y1, theta1, x2, y2, theta2
+        return (*self._joint_pose(l01_m), *self._joint_pose(l02_m))
+
+    def _joint_pose(self, l0_m) -> Tuple[np.ndarray, ...]:
+        """Table pose at rod positions, continued along the end slopes beyond the table."""
+        # Rods can overrun the characterised range up to the end stops. A real flexure
+        # goes on bending smoothly there: continue the table along its end tangents (a
+        # flat continuation would put a kink at the ends that no flexure has).
+        l0 = np.asarray(l0_m, float).ravel()
+        inside = np.clip(l0, self.table.l0_min_m, self.table.l0_max_m)
+        x, y, theta, dx, dy, dtheta = self.table.components(inside)
+        beyond = l0 - inside
+        return x + dx * beyond, y + dy * beyond, theta + dtheta * beyond
 
     def end_point(self, l01_m, l02_m) -> np.ndarray:
         """Return the true end points (m), ``S + (2,)``, for rod positions of shape ``S``."""
@@ -98,8 +102,8 @@ class SimulatedArm:
         in the table (joint 1 in the rig frame, joint 2 in link 1's frame), with the
         plant's scale, offset and sag: what a characterisation should measure.
         """
-        x1, y1, theta1 = self.table.pose_at(l01_m)
-        x2, y2, theta2 = self.table.pose_at(l02_m)
+        x1, y1, theta1 = self._joint_pose_at(l01_m)
+        x2, y2, theta2 = self._joint_pose_at(l02_m)
         p = self.parameters
         theta1 = p.joint_scale[0] * theta1 + p.joint_offset_rad[0]
         theta2 = p.joint_scale[1] * theta2 + p.joint_offset_rad[1]
@@ -108,6 +112,14 @@ class SimulatedArm:
             theta1 -= sag1
             theta2 -= sag2
         return x1, y1, theta1, x2, y2, theta2
+
+    def _joint_pose_at(self, l0_m: float) -> Tuple[float, float, float]:
+        """Scalar :meth:`_joint_pose`: the table pose, along the end tangents beyond it."""
+        x, y, theta, dx, dy, dtheta = self.table.pose_and_slope_at(l0_m)
+        beyond = l0_m - min(max(l0_m, self.table.l0_min_m), self.table.l0_max_m)
+        if beyond:
+            return x + dx * beyond, y + dy * beyond, theta + dtheta * beyond
+        return x, y, theta
 
     def output_bodies_at(self, l01_m: float, l02_m: float) -> Tuple[Tuple[float, ...], ...]:
         """
