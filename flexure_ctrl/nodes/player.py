@@ -187,10 +187,14 @@ class Player(Node):
             return True
         origin_ns = bag_start_ns + self.start_offset_ns
         publishers: Dict[str, object] = self.publishers_by_topic
-        start_s = time.monotonic()
+        start_s = None
         for message in self.reader.messages(self.topics):
             if message.log_time_ns < origin_ns:
                 continue
+            if start_s is None:
+                # Taken once the first message is read: opening the file and its index
+                # must not make the whole pass late.
+                start_s = time.monotonic()
             deadline_s = start_s + (message.log_time_ns - origin_ns) / _NS_PER_S / self.rate
             delay_s = deadline_s - time.monotonic()
             if delay_s > 0:
