@@ -125,7 +125,8 @@ def test_correct_writes_the_next_command_path(tmp_path, capsys):
 def test_correct_then_report_shows_the_reduction(tmp_path, capsys):
     first = write_runs(tmp_path / 'run_0', [T0_NS])
     command_file = tmp_path / 'command_1.csv'
-    assert main(['correct', str(first), '--out', str(command_file)]) == 0
+    # No filter: the paper's Eq. 8 exactly, c1 = 2p - e0.
+    assert main(['correct', str(first), '--out', str(command_file), '--cutoff-hz', '0']) == 0
     learned = WaypointPath.from_file(command_file)
     second = write_runs(tmp_path / 'run_1', [T0_NS + 30 * 10**9],
                         command_of_t=lambda t: learned.sample(np.clip(t, 0.0, PERIOD_S))[0])

@@ -32,7 +32,8 @@ def model_plant(command_of_t, t_s, lag_s=0.05):
     return np.column_stack([x, y])
 
 
-def make_run(command_of_t, noise_m=0.0, seed=0, drop=None, lag_s=0.05, path=PATH):
+def make_run(command_of_t, noise_m=0.0, seed=0, drop=None, lag_s=0.05, path=PATH,
+             bump_m=0.0):
     rng = np.random.default_rng(seed)
     demand_t = stamps_ns(100.0, -LEAD_S, path.duration_s + LEAD_S)
     demand_s = (demand_t - T0_NS) / 1e9
@@ -43,6 +44,10 @@ def make_run(command_of_t, noise_m=0.0, seed=0, drop=None, lag_s=0.05, path=PATH
         tracked_t, tracked_s = tracked_t[keep], tracked_s[keep]
     tracked = model_plant(command_of_t, tracked_s, lag_s)
     tracked = tracked + rng.normal(0.0, noise_m, tracked.shape) if noise_m else tracked
+    if bump_m:
+        # An unrepeatable disturbance (a stall of the rig PC, say): 0.2 s wide, anywhere.
+        centre_s = rng.uniform(1.0, path.duration_s - 1.0)
+        tracked[:, 1] += bump_m * np.exp(-0.5 * ((tracked_s - centre_s) / 0.1) ** 2)
     return RecordedRun(T0_NS, path.duration_s, demand_t, demand_at(path, demand_s),
                        command_of_t(demand_s), tracked_t, tracked)
 
@@ -119,7 +124,7 @@ def test_gain_scales_the_update():
 
 def test_learning_converges_to_the_noise_floor_on_a_lagging_distorting_plant():
     noise_m = 2e-5
-    corrector = IterativeCorrector(gain=1.0)
+    corrector = IterativeCorrector(gain=1.0, later_gain=1.0)
     command = lambda t: demand_at(PATH, t)  # noqa: E731 (c_0 = p)
     maxima = []
     for iteration in range(5):
@@ -166,7 +171,7 @@ def test_a_recording_that_misses_the_end_of_the_path_is_refused():
 
 
 def test_gain_is_reduced_when_the_error_stops_falling_and_learning_stops_at_min_gain():
-    corrector = IterativeCorrector(gain=1.0, min_gain=0.3)
+    corrector = IterativeCorrector(gain=1.0, later_gain=1.0, min_gain=0.3)
     errors = path_errors(make_run(lambda t: demand_at(PATH, t)))
     corrector.add_run(errors)
     assert corrector.next_command() is not None and corrector.gain == 1.0
@@ -176,6 +181,20 @@ def test_gain_is_reduced_when_the_error_stops_falling_and_learning_stops_at_min_
     corrector.add_run(errors)
     assert corrector.next_command() is None
     assert 'learning stopped' in corrector.note
+
+
+def test_corrections_after_the_first_use_the_later_gain():
+    corrector = IterativeCorrector(gain=1.0, later_gain=0.4)
+    first = path_errors(make_run(lambda t: demand_at(PATH, t)))
+    corrector.add_run(first)
+    command = corrector.next_command()
+    assert corrector.gain == 1.0
+    second = path_errors(make_run(command_function(command)))
+    corrector.add_run(second)
+    later = corrector.next_command()
+    assert corrector.gain == 0.4
+    expected = corrected_command(second, gain=0.4)
+    assert np.allclose(later.points_m, expected.points_m, atol=1e-12)
 
 
 def test_command_csv_is_a_waypoint_file_of_the_paths_duration(tmp_path):
@@ -192,3 +211,4 @@ def test_paths_not_on_whole_grid_steps_end_exactly_at_their_duration():
     run = make_run(lambda t: demand_at(path, t), path=path)
     command = corrected_command(path_errors(run))
     assert command.t_s[-1] == 5.003 and np.all(np.diff(command.t_s) > 0.0)
+

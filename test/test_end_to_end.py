@@ -8,6 +8,7 @@ short version of the paper's path, and checks what the tracker saw.
 
 import json
 import os
+from pathlib import Path
 import re
 import signal
 import socket
@@ -25,6 +26,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
+from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 import yaml
@@ -263,18 +265,33 @@ def test_actuators_stop_within_the_watchdog_time_when_setpoints_die(rig_factory)
     assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
 
 
-def test_demo_runs_the_path_and_reports_table_1_quantities(tmp_path):
+def test_demo_records_each_run_and_learns_the_path(tmp_path):
     out = tmp_path / 'demo'
     result = subprocess.run(
-        [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--period', '5', '--quiet',
-         '--out', str(out), '--can-port', str(free_port()),
-         '--tracker-port', str(free_port())],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=240, env=os.environ)
+        [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--period', '5',
+         '--iterations', '1', '--quiet', '--out', str(out), '--bag-dir', str(tmp_path / 'bags'),
+         '--can-port', str(free_port()), '--tracker-port', str(free_port())],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=300, env=os.environ)
     assert result.returncode == 0, result.stdout[-3000:]
     summary = json.loads((out / 'summary.json').read_text())
-    assert summary['points'] > 0.5 * 500 * 5
-    assert 0.5 < summary['max_abs_error_x_mm'] < 8.0
-    assert 5.0 < summary['max_abs_error_y_mm'] < 50.0
-    assert summary['rms_error_y_mm'] < summary['max_abs_error_y_mm']
-    assert (out / 'demo.png').stat().st_size > 10_000
-    assert 'max |e| (mm)' in result.stdout
+    original, adjusted = summary['iterations']
+    for index, row in enumerate((original, adjusted)):
+        assert row['iteration'] == index
+        assert set(row) >= {'bag', 'max_abs_error_x_mm', 'max_abs_error_y_mm',
+                            'rms_error_x_mm', 'rms_error_y_mm'}
+        assert row['points'] > 0.5 * 500 * 5
+        # Each run's bag opens in an independent reader, with the tracker's points in it.
+        with Reader(Path(row['bag'])) as bag:
+            counts = {c.topic: c.msgcount for c in bag.connections}
+            assert counts['/flexure/tracker/end'] >= row['points']
+    assert 0.5 < original['max_abs_error_x_mm'] < 8.0
+    assert 5.0 < original['max_abs_error_y_mm'] < 50.0
+    # One correction: the repeatable part of the error is learned. RMS, not the maximum,
+    # so that one stall of this shared machine in one run cannot decide the test.
+    assert adjusted['rms_error_y_mm'] < 0.5 * original['rms_error_y_mm'], result.stdout[-3000:]
+    assert adjusted['rms_error_x_mm'] < original['rms_error_x_mm'], result.stdout[-3000:]
+    for picture in ('trajectories.png', 'errors.png'):
+        assert (out / picture).stat().st_size > 10_000
+    assert "the paper's Table 1" in result.stdout
+    # The learned command path the second run used, in the file trajectory_generator took.
+    assert (out / 'command_1.csv').read_text().startswith('t_s,x_m,y_m')

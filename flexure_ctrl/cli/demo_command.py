@@ -22,7 +22,7 @@ import time
 from typing import List, Optional
 
 from flexure_ctrl.cli import report_command
-from flexure_ctrl.core.correction import IterativeCorrector, path_errors
+from flexure_ctrl.core.correction import DEFAULT_CUTOFF_HZ, IterativeCorrector, path_errors
 from flexure_ctrl.core.runs import load_last_run
 
 LEAD_IN_S = 2.5
@@ -54,7 +54,15 @@ def add_parser(commands) -> None:
     parser.add_argument('--period', type=float, default=14.0, metavar='S',
                         help='period of the path in s (default: %(default)s, as in the paper)')
     parser.add_argument('--gain', type=float, default=1.0,
-                        help='initial learning gain gamma, in (0, 2] (default: %(default)s)')
+                        help="learning gain gamma of the first correction, in (0, 2]; 1 is the "
+                             "paper's Eq. 8 (default: %(default)s)")
+    parser.add_argument('--later-gain', type=float, default=0.5,
+                        help='learning gain of the later corrections, in (0, 2]: below 1 an '
+                             "unrepeatable error of one run is not mirrored into the next "
+                             '(default: %(default)s)')
+    parser.add_argument('--cutoff-hz', type=float, default=DEFAULT_CUTOFF_HZ, metavar='HZ',
+                        help='cutoff of the zero-phase low-pass Q applied to the error '
+                             '(default: %(default)s)')
     parser.add_argument('--sim-config', type=Path, metavar='FILE',
                         help='simulator knobs overriding config/simulator.yaml')
     parser.add_argument('--out', type=Path, default=Path('out/demo'), metavar='DIR',
@@ -280,7 +288,8 @@ def run(arguments: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     up = _Process(_up_command(arguments), arguments.quiet)
     operator = None
-    corrector = IterativeCorrector(gain=arguments.gain)
+    corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
+                                   cutoff_hz=arguments.cutoff_hz)
     progress = _Progress(arguments.iterations + 1)
     rows = []
     try:

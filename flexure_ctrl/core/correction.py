@@ -31,7 +31,7 @@ from scipy.signal import butter, sosfiltfilt
 
 NS_PER_S = 1_000_000_000
 DEFAULT_GRID_RATE_HZ = 100.0
-DEFAULT_CUTOFF_HZ = 2.0
+DEFAULT_CUTOFF_HZ = 1.0
 DEFAULT_BRIDGE_MAX_S = 0.1
 # Median absolute deviation to the standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
@@ -298,7 +298,11 @@ class IterativeCorrector:
     the gain is multiplied by ``gain_shrink`` and the next command learns from the best
     run instead; below ``min_gain`` learning stops.
 
-    :param gain: initial learning gain ``gamma``.
+    :param gain: learning gain ``gamma`` of the first correction (1: the paper's Eq. 8).
+    :param later_gain: gain of the corrections after the first. Below 1, each run's
+        unrepeatable error (jitter, a stall) is learned only in part, so that it does not
+        come back mirrored in the next run; the repeatable rest still shrinks as
+        ``(1 - later_gain)^k``.
     :param cutoff_hz: cutoff of ``Q`` (Hz).
     :param min_gain: learning stops when the gain falls below this.
     :param gain_shrink: factor applied to the gain when the error stops falling.
@@ -306,11 +310,13 @@ class IterativeCorrector:
         count as improving.
     """
 
-    def __init__(self, gain: float = 1.0, cutoff_hz: float = DEFAULT_CUTOFF_HZ,
-                 min_gain: float = 0.1, gain_shrink: float = 0.5,
-                 stall_ratio: float = 0.95) -> None:
-        if not 0.0 < gain <= 2.0:
-            raise CorrectionError(f'the learning gain must be in (0, 2], got {gain}')
+    def __init__(self, gain: float = 1.0, later_gain: float = 0.5,
+                 cutoff_hz: float = DEFAULT_CUTOFF_HZ, min_gain: float = 0.1,
+                 gain_shrink: float = 0.5, stall_ratio: float = 0.95) -> None:
+        for name, value in (('gain', gain), ('later_gain', later_gain)):
+            if not 0.0 < value <= 2.0:
+                raise CorrectionError(f'the learning {name} must be in (0, 2], got {value}')
+        self.later_gain = float(later_gain)
         if not 0.0 < gain_shrink < 1.0:
             raise CorrectionError(f'gain_shrink must be in (0, 1), got {gain_shrink}')
         self.gain = float(gain)
@@ -340,6 +346,8 @@ class IterativeCorrector:
         latest = self.iterations[-1]
         earlier = self.iterations[:-1]
         source = latest
+        if len(self.iterations) == 2:
+            self.gain = min(self.gain, self.later_gain)
         if earlier:
             best = min(earlier, key=self._score)
             if self._score(latest) >= self.stall_ratio * self._score(best):

@@ -27,6 +27,8 @@ import numpy as np
 # Targets on the joints' vertical output bodies (paper Fig. 4): (joint index, a or b).
 TIP_TARGETS = {'tip1_a': (0, 'a'), 'tip1_b': (0, 'b'), 'tip2_a': (1, 'a'), 'tip2_b': (1, 'b')}
 END_TARGET = 'end'
+# Longest time (s) the rods are extrapolated past the last physics step.
+MAX_EXTRAPOLATION_S = 0.2
 LEAD_SCREW_KEYS = ('lag_s', 'max_speed_m_s', 'backlash_m', 'pot_noise_m', 'pot_quantum_m',
                    'drift_m_per_s', 'end_stop_m')
 
@@ -121,14 +123,26 @@ class SimulatedRig:
             rng=np.random.default_rng(self._rng.integers(2**32)),
             host=network['host'], port=int(network['tracker_port']))
         self._period_s = 1.0 / float(config['physics_rate_hz'])
+        self._physics_time_s = time.monotonic()
         self._stop = threading.Event()
         self._physics: Optional[threading.Thread] = None
         self._shut_down = False
 
+    def rod_positions_now_m(self) -> tuple:
+        """
+        Return both rods' true positions now (m), between physics steps too.
+
+        The physics thread steps the rods; when this machine starves it for a while, the
+        rods of a real rig would have gone on moving at their velocity. Extrapolating
+        from the last step keeps a stall of the simulator out of what the tracker sees
+        (it would look like the arm stopping, which no real arm does when a PC stalls).
+        """
+        ahead_s = min(max(time.monotonic() - self._physics_time_s, 0.0), MAX_EXTRAPOLATION_S)
+        return tuple(a.rod_position_m + a.velocity_m_s * ahead_s for a in self.actuators)
+
     def true_end_point(self) -> tuple:
         """Return the true end point now, ``(x, y)`` (m, rig frame), from the true rods."""
-        return self.arm.end_point_at(self.actuators[0].rod_position_m,
-                                     self.actuators[1].rod_position_m)
+        return self.arm.end_point_at(*self.rod_positions_now_m())
 
     def true_tip_targets(self) -> dict:
         """
@@ -137,8 +151,7 @@ class SimulatedRig:
         ``{'tip1_a': (x, y, 0.0), ...}`` (m): each target at its offset in its joint's tip
         frame, from the joints' true response (the plant's deviations included).
         """
-        return tip_target_points(self.arm, self.actuators[0].rod_position_m,
-                                 self.actuators[1].rod_position_m,
+        return tip_target_points(self.arm, *self.rod_positions_now_m(),
                                  [name for name, *_ in self._tip_targets],
                                  self.tip_target_offsets_m)
 
@@ -178,6 +191,7 @@ class SimulatedRig:
             last_s = now_s
             for drive in self.drives:
                 drive.tick(now_s, dt_s)
+            self._physics_time_s = now_s
             next_s += self._period_s
             delay_s = next_s - time.monotonic()
             if delay_s > 0:
