@@ -211,4 +211,3 @@ def test_paths_not_on_whole_grid_steps_end_exactly_at_their_duration():
     run = make_run(lambda t: demand_at(path, t), path=path)
     command = corrected_command(path_errors(run))
     assert command.t_s[-1] == 5.003 and np.all(np.diff(command.t_s) > 0.0)
-

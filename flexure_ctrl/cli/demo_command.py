@@ -54,11 +54,11 @@ def add_parser(commands) -> None:
     parser.add_argument('--period', type=float, default=14.0, metavar='S',
                         help='period of the path in s (default: %(default)s, as in the paper)')
     parser.add_argument('--gain', type=float, default=1.0,
-                        help="learning gain gamma of the first correction, in (0, 2]; 1 is the "
-                             "paper's Eq. 8 (default: %(default)s)")
+                        help='learning gain gamma of the first correction, in (0, 2]; 1 is '
+                             "the paper's Eq. 8 (default: %(default)s)")
     parser.add_argument('--later-gain', type=float, default=0.5,
                         help='learning gain of the later corrections, in (0, 2]: below 1 an '
-                             "unrepeatable error of one run is not mirrored into the next "
+                             'unrepeatable error of one run is not mirrored into the next '
                              '(default: %(default)s)')
     parser.add_argument('--cutoff-hz', type=float, default=DEFAULT_CUTOFF_HZ, metavar='HZ',
                         help='cutoff of the zero-phase low-pass Q applied to the error '
