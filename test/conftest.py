@@ -75,3 +75,19 @@ class TickedDrive:
         self.stop_ticking()
         self.drive.shutdown()
         self.bus.shutdown()
+
+
+def spin_in_thread(executor) -> threading.Thread:
+    """Spin ``executor`` in a daemon thread until its context shuts down."""
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    def spin():
+        try:
+            executor.spin()
+        except (ExternalShutdownException, rclpy_implementation.RCLError):
+            pass  # the test shut the context down
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    return thread

@@ -155,3 +155,9 @@ def test_tracker_dropouts_are_not_learned(tmp_path):
     learned = WaypointPath.from_file(out)
     inside = np.linspace(1.05, 1.45, 9)
     assert np.allclose(learned.sample(inside)[0], SINE.sample(inside)[0], atol=1e-9)
+
+
+def test_demo_refuses_a_bad_gain_before_starting_the_rig(tmp_path, capsys):
+    assert main(['demo', '--gain', '3', '--out', str(tmp_path / 'demo')]) == 2
+    assert 'gain must be in (0, 2]' in capsys.readouterr().err
+    assert not (tmp_path / 'demo').exists()

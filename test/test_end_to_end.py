@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 
+from conftest import spin_in_thread
 from flexure_ctrl.core.alignment import align
 from flexure_ctrl.core.design import find_config_file
 from geometry_msgs.msg import PointStamped
@@ -24,14 +25,12 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.executors import SingleThreadedExecutor
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 import yaml
 
-RCLError = rclpy_implementation.RCLError
 PERIOD_S = 6.0
 LEAD_IN_S = 2.5
 SIM_PARAMETERS = yaml.safe_load(
@@ -83,14 +82,7 @@ class Rig:
             self.received[topic] = []
             self.node.create_subscription(message_type, topic, self._keeper(topic), 1000)
         # ~1,700 messages/s arrive: spin in a thread of its own, not between checks.
-        self._spinner = threading.Thread(target=self._spin, daemon=True)
-        self._spinner.start()
-
-    def _spin(self):
-        try:
-            self.executor.spin()
-        except (ExternalShutdownException, RCLError):
-            pass
+        self._spinner = spin_in_thread(self.executor)
 
     def _keeper(self, topic):
         store = self.received[topic]

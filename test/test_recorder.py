@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 
+from conftest import spin_in_thread
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.bag import BagReader
 from flexure_ctrl.nodes.player import Player, PlayerConfigError
@@ -24,8 +25,7 @@ from nav_msgs.msg import Path
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
@@ -33,7 +33,6 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 import yaml
 
-RCLError = rclpy_implementation.RCLError
 POINTS = '/test/points'
 JOINTS = '/test/joints'
 DIAGNOSTICS = '/test/diagnostics'
@@ -66,14 +65,7 @@ class Ros:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.nodes = [self.node]
-        self._spinner = threading.Thread(target=self._spin, daemon=True)
-        self._spinner.start()
-
-    def _spin(self):
-        try:
-            self.executor.spin()
-        except (ExternalShutdownException, RCLError):
-            pass
+        self._spinner = spin_in_thread(self.executor)
 
     def add(self, node):
         self.nodes.append(node)

@@ -23,15 +23,15 @@ from typing import List, Optional
 
 from flexure_ctrl.cli import report_command
 from flexure_ctrl.core.correction import DEFAULT_CUTOFF_HZ, IterativeCorrector, path_errors
-from flexure_ctrl.core.runs import load_last_run
+from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.runs import load_last_run, RUN_TOPICS
 
 LEAD_IN_S = 2.5
 LEAD_OUT_S = 1.0
 UP_TIMEOUT_S = 120.0
 RECORDER_TIMEOUT_S = 60.0
-# Topics the recorder must have subscribed to before a run may start.
-RECORDED_BEFORE_START = ('/flexure/demand', '/flexure/command', '/flexure/demand_path',
-                         '/flexure/tracker/end')
+# Topics the recorder must have subscribed to before a run may start: what a run needs.
+RECORDED_BEFORE_START = RUN_TOPICS
 # What the demo records by default: all the run's topics but the two 500 Hz actuator
 # states. Recording those too costs about half a core here, and on two cores shared by
 # the simulator and six node processes that load shows up as jitter in the runs.
@@ -40,7 +40,7 @@ DEMO_TOPICS = RECORDED_BEFORE_START + ('/flexure/command_path', '/flexure/actuat
 ALL_RUN_TOPICS = DEMO_TOPICS + ('/flexure/actuator_1/state', '/flexure/actuator_2/state')
 
 
-class DemoError(RuntimeError):
+class DemoError(FlexureCtrlError, RuntimeError):
     """The demo could not go on (the message says why)."""
 
 
@@ -295,12 +295,13 @@ def run(arguments: argparse.Namespace) -> int:
         raise DemoError('--iterations must be 0 or more')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
+    # Bad gains are refused here, before the rig starts.
+    corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
+                                   cutoff_hz=arguments.cutoff_hz)
     out = arguments.out
     out.mkdir(parents=True, exist_ok=True)
     up = _Process(_up_command(arguments), arguments.quiet)
     operator = None
-    corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
-                                   cutoff_hz=arguments.cutoff_hz)
     progress = _Progress(arguments.iterations + 1)
     rows = []
     try:

@@ -10,7 +10,7 @@ Figs. 13/16 (trajectories) and 17 (errors against time).
 import argparse
 import json
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Sequence
 
 from flexure_ctrl.core.correction import (DEFAULT_CUTOFF_HZ, path_errors, PathErrors,
                                           reduction_percent)
@@ -137,8 +137,8 @@ def write_summary(out: Path, summary: Dict) -> Path:
     return path
 
 
-def run(arguments: argparse.Namespace, bags: Optional[Sequence[Path]] = None) -> int:
-    bags = list(arguments.bags if bags is None else bags)
+def run(arguments: argparse.Namespace) -> int:
+    bags = arguments.bags
     errors = [path_errors(load_last_run(bag)) for bag in bags]
     rows = [iteration_summary(index, bag, run) for index, (bag, run)
             in enumerate(zip(bags, errors))]

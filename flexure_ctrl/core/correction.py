@@ -282,11 +282,10 @@ def _on_path_exactly(errors: PathErrors, values: np.ndarray) -> Tuple[np.ndarray
 
 @dataclass(eq=False)
 class Iteration:
-    """One run of the learning: its command's errors and the gain that made the next."""
+    """One run of the learning: its errors and their maxima."""
 
     errors: PathErrors
     max_abs_error_m: np.ndarray
-    gain: Optional[float] = None   # the gain applied to this run to make the next command
 
 
 class IterativeCorrector:
@@ -360,7 +359,6 @@ class IterativeCorrector:
         if self.gain < self.min_gain:
             self.note = f'learning stopped: gain {self.gain:.3g} below {self.min_gain:.3g}'
             return None
-        latest.gain = self.gain
         return corrected_command(source.errors, self.gain, self.cutoff_hz)
 
 

@@ -11,7 +11,7 @@ matched to the latest path start published before its end.
 from pathlib import Path
 from typing import Dict, List, Tuple, Union
 
-from flexure_ctrl.core.bag import BagError, BagReader
+from flexure_ctrl.core.bag import BagReader
 from flexure_ctrl.core.correction import NS_PER_S, RecordedRun
 from flexure_ctrl.core.errors import CorrectionError
 import numpy as np
@@ -39,7 +39,7 @@ def load_runs(bag_path: Union[str, Path]) -> List[RecordedRun]:
 
     :param bag_path: bag folder or ``.mcap`` file.
     :raises CorrectionError: the bag lacks a topic the runs need, or holds no run.
-    :raises BagError: the bag cannot be read.
+    :raises flexure_ctrl.core.bag.BagError: the bag cannot be read.
     """
     reader = BagReader(bag_path)
     missing = [topic for topic in RUN_TOPICS if topic not in reader.topics()]
@@ -78,8 +78,9 @@ def load_runs(bag_path: Union[str, Path]) -> List[RecordedRun]:
         raise CorrectionError(f'{bag_path}: {int((~paired).sum())} of {paired.size} demand '
                               'points have no command with the same stamp (messages lost?)')
     stamps = stamps[paired]
-    tracked_array = np.array(sorted(tracked), dtype=float).reshape(-1, 3)
-    tracked_t = np.array(sorted(t for t, _, _ in tracked), dtype=np.int64)
+    tracked.sort()
+    tracked_t = np.array([t for t, _, _ in tracked], dtype=np.int64)
+    tracked_xy = np.array([(x, y) for _, x, y in tracked], dtype=float).reshape(-1, 2)
     breaks = np.flatnonzero(np.diff(stamps) > RUN_GAP_S * NS_PER_S) + 1
     runs = []
     for burst in np.split(stamps, breaks):
@@ -94,7 +95,7 @@ def load_runs(bag_path: Union[str, Path]) -> List[RecordedRun]:
             path_start_ns=int(start_ns), duration_s=float(duration_s),
             demand_t_ns=burst, demand_m=np.array([demand[s] for s in burst_list]),
             command_m=np.array([command[s] for s in burst_list]),
-            tracked_t_ns=tracked_t[inside], tracked_m=tracked_array[inside, 1:]))
+            tracked_t_ns=tracked_t[inside], tracked_m=tracked_xy[inside]))
     if not runs:
         raise CorrectionError(f'{bag_path}: no run of the path was recorded')
     return runs
@@ -103,6 +104,3 @@ def load_runs(bag_path: Union[str, Path]) -> List[RecordedRun]:
 def load_last_run(bag_path: Union[str, Path]) -> RecordedRun:
     """Read the last run of the path in a bag (see :func:`load_runs`)."""
     return load_runs(bag_path)[-1]
-
-
-__all__ = ['BagError', 'load_last_run', 'load_runs', 'RUN_TOPICS']
