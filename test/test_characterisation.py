@@ -8,13 +8,14 @@ about a second per joint. The live run through the simulated rig is in
 test_characterise_live.py.
 """
 
+from collections import deque
 import math
 
 from flexure_ctrl.core.characterisation import (
     CharacterisationError, DEFAULT_OFFSET_A_M, DEFAULT_OFFSET_B_M, joint_pose_in_root_frame,
     measured_design, plot_characterisation, PointsCsv, read_points_csv, SettleCriteria,
-    StrokeLimitError, summarise, SweepPlan, SweepPlanError, SweepPoint, SweepRunner,
-    TARGET_NAMES, TargetLayout, tip_pose_from_targets, write_design_yaml)
+    SettleTimeoutError, StrokeLimitError, summarise, SweepPlan, SweepPlanError, SweepPoint,
+    SweepRunner, TARGET_NAMES, TargetLayout, tip_pose_from_targets, write_design_yaml)
 from flexure_ctrl.core.design import LinkGeometry, load_design
 from flexure_ctrl.core.inverse import InverseSolver
 from flexure_ctrl.core.kinematics import TwoLinkArm
@@ -75,8 +76,16 @@ def test_joint2_pose_is_taken_relative_to_its_root_on_link1():
     assert joint_pose_in_root_frame(joint1, joint2, tilted)[0] != pytest.approx(x2, abs=1e-3)
 
 
-def simulated_run(design, joint, plan=None, seed=1, other_m=0.0, on_point=None):
-    """Run the procedure against the simulator's true joints, in simulated time."""
+def simulated_run(design, joint, plan=None, seed=1, other_m=0.0, on_point=None,
+                  tracker_delay_s=0.0, tracker_every=1):
+    """
+    Run the procedure against the simulator's true joints, in simulated time.
+
+    ``tracker_delay_s``: each tracker point reaches the runner that long after its stamp,
+    as on a loaded host where the subscriber's queue stays full. ``tracker_every``: only
+    every n-th tracker sample arrives (the others are dropped).
+    """
+    in_flight = deque()
     rng = np.random.default_rng(seed)
     arm = SimulatedArm(design)
     plan = plan or SweepPlan(stroke_limit_m=design.stroke_limit_m)
@@ -103,7 +112,11 @@ def simulated_run(design, joint, plan=None, seed=1, other_m=0.0, on_point=None):
         runner.add_drive(now_ns, rods[index] + rng.normal(0.0, 2e-5))
         points = tip_target_points(arm, rods[0], rods[1], runner.target_names, OFFSETS)
         for name, point in points.items():
-            runner.add_target(name, now_ns, np.asarray(point[:2]) + rng.normal(0.0, 2e-5, 2))
+            if tick % tracker_every:
+                continue
+            in_flight.append((name, now_ns, np.asarray(point[:2]) + rng.normal(0.0, 2e-5, 2)))
+        while in_flight and in_flight[0][1] <= now_ns - tracker_delay_s * 1e9:
+            runner.add_target(*in_flight.popleft())
         now_ns += dt_ns
         tick += 1
         assert now_ns - START_NS < 200e9, 'the simulated run did not finish'
@@ -206,6 +219,52 @@ def test_narrow_sweep_narrows_the_stroke_and_one_sided_sweep_makes_no_design():
     with pytest.raises(CharacterisationError, match='across zero'):
         measured_design(design, summarise(runner.points, one_sided), one_sided, 'n',
                         'actuator_1', 'sim')
+
+
+def test_tracker_points_arriving_late_still_settle_every_step():
+    # Measured on this 2-core host with two busy processes beside the simulated rig: the
+    # tracker points reached the characteriser a steady 0.2 s after their stamps.
+    design = load_design('cfa')
+    plan = SweepPlan(from_m=-0.01, to_m=0.01, step_m=0.005)
+    prompt, _, arm = simulated_run(design, 'actuator_1', plan)
+    late, _, _ = simulated_run(design, 'actuator_1', plan, tracker_delay_s=0.25)
+    assert len(late.points) == len(plan.steps()) and not late.warnings
+    assert all(point.settled for point in late.points)
+    truth = truth_of(arm, 'actuator_1', [p.l0_command_m for p in late.points])
+    measured = np.array([[p.x_f_m, p.y_f_m, p.theta_f_rad] for p in late.points])
+    assert np.abs(measured - truth)[:, :2].max() < 0.05e-3
+    assert np.abs(measured - truth)[:, 2].max() < 0.5e-3
+    # Waiting for the late points costs about the delay per step, no more.
+    extra_s = [b.wait_s - a.wait_s for a, b in zip(prompt.points, late.points)]
+    assert 0.2 <= np.median(extra_s) <= 0.5
+
+
+def test_sparse_tracker_points_widen_the_window_instead_of_failing():
+    # 1 in 15 of the 500 Hz points arrives: 10 per 0.3 s window, fewer than min_samples.
+    design = load_design('cfa')
+    plan = SweepPlan(from_m=-0.01, to_m=0.01, step_m=0.005)
+    sparse, _, arm = simulated_run(design, 'actuator_1', plan, tracker_every=15)
+    assert len(sparse.points) == len(plan.steps()) and not sparse.warnings
+    assert min(point.tracker_samples for point in sparse.points) >= 20
+    truth = truth_of(arm, 'actuator_1', [p.l0_command_m for p in sparse.points])
+    measured = np.array([[p.x_f_m, p.y_f_m, p.theta_f_rad] for p in sparse.points])
+    assert np.abs(measured - truth)[:, :2].max() < 0.05e-3
+    assert np.abs(measured - truth)[:, 2].max() < 0.5e-3
+
+
+def test_a_stream_that_stops_is_named_when_the_step_times_out():
+    plan = SweepPlan(from_m=-0.005, to_m=0.005)
+    criteria = SettleCriteria(window_s=0.1, max_wait_s=0.5, on_timeout='abort')
+    runner = SweepRunner(plan, criteria, TargetLayout(TARGET_NAMES['actuator_1']))
+    now, drive_m = START_NS, plan.from_m
+    with pytest.raises(SettleTimeoutError, match=r'tracker target tip1_b: newest sample'):
+        while now < START_NS + 5e9:
+            runner.add_drive(now, drive_m)  # a perfect drive, on its setpoint
+            runner.add_target('tip1_a', now, (0.03, -0.01))
+            if now < START_NS + 0.1e9:  # tip1_b is lost early on
+                runner.add_target('tip1_b', now, (0.03, -0.07))
+            drive_m = runner.command(now)[0]
+            now += 2_000_000
 
 
 def synthetic_points(plan, up_offset=0.0, sweep_offsets=(0.0,)):

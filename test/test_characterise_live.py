@@ -102,7 +102,7 @@ def characterise(out, *extra, wait=True):
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                text=True, env=os.environ)
     if wait:
-        output, _ = process.communicate(timeout=120)
+        output, _ = process.communicate(timeout=300)  # slow on a loaded host
         return process.returncode, output
     return process
 

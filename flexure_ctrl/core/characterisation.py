@@ -51,6 +51,8 @@ TARGET_NAMES = {'actuator_1': ('tip1_a', 'tip1_b'), 'actuator_2': ('tip2_a', 'ti
 DEFAULT_OFFSET_A_M = (0.0, -0.010)
 DEFAULT_OFFSET_B_M = (0.0, -0.074)
 _NS_PER_S = 1_000_000_000
+# How much further back than two windows the samples are kept, for sparse streams (s).
+_SPARSE_HORIZON_S = 1.0
 
 
 class CharacterisationError(FlexureCtrlError):
@@ -148,7 +150,9 @@ class SettleCriteria:
     target's mean point moved by more than ``drift_tolerance_m`` between the halves.
     The point is the mean over that window. A step that has not settled ``max_wait_s``
     after its move ended is flagged (``on_timeout='flag'``: the last window is kept and
-    marked unsettled) or ends the run (``'abort'``).
+    marked unsettled) or ends the run (``'abort'``). Where a stream is sparse (a loaded
+    host drops samples), the window reaches further back until every stream has
+    ``min_samples`` in it, never to before the move ended.
     """
 
     window_s: float = 0.3
@@ -271,16 +275,17 @@ def _half_means(times_ns: np.ndarray, values: np.ndarray, start_ns: int, end_ns:
 
 
 def settle_window(criteria: SettleCriteria, setpoint_m: float, drive, targets: Dict,
-                  now_ns: int):
+                  now_ns: int, start_ns: Optional[int] = None):
     """
-    Judge the last ``window_s`` of samples.
+    Judge the samples from ``start_ns`` (default: ``window_s`` before ``now_ns``) to now.
 
     :param drive: ``(times_ns, positions_m)`` arrays of the drive's readings.
     :param targets: ``{name: (times_ns, points)}``, points ``(n, 2)`` or ``(n, 3)`` (m).
     :returns: ``(settled, drive_mean_m, {name: mean point}, drive_count, tracker_count)``,
         or None while the window holds fewer than ``min_samples`` of any stream.
     """
-    start_ns = now_ns - int(criteria.window_s * _NS_PER_S)
+    if start_ns is None:
+        start_ns = now_ns - int(criteria.window_s * _NS_PER_S)
     drive_stats = _half_means(drive[0], drive[1], start_ns, now_ns)
     if drive_stats is None or drive_stats[3] < criteria.min_samples:
         return None
@@ -358,7 +363,7 @@ class SweepRunner:
         self.steps = plan.steps()
         self.points: List[SweepPoint] = []
         self.warnings: List[str] = []
-        horizon_ns = int(2.0 * criteria.window_s * _NS_PER_S)
+        horizon_ns = int((2.0 * criteria.window_s + _SPARSE_HORIZON_S) * _NS_PER_S)
         self._drive = _Samples(horizon_ns)
         self.target_names = list(layout.names) + (
             list(self.joint1_layout.names) if self.joint1_layout else [])
@@ -439,15 +444,66 @@ class SweepRunner:
         self._ramp_start_ns = now_ns
         self._move_end_ns = None
 
+    def _streams(self):
+        return [(self.joint + ' drive', self._drive)] + [
+            (f'tracker target {name}', samples) for name, samples in self._targets.items()]
+
+    def _common_latest_ns(self) -> Optional[int]:
+        """Return the newest stamp that every stream has reached, or None if one is empty."""
+        latest = [samples.times[-1] if samples.times else None
+                  for _, samples in self._streams()]
+        return None if None in latest else min(latest)
+
+    def _window_start_ns(self, end_ns: int, stream_times: list) -> Optional[int]:
+        """Start ``window_s`` before the end, or earlier if a stream has too few samples."""
+        start_ns = end_ns - int(self.criteria.window_s * _NS_PER_S)
+        for times in stream_times:
+            newest = int(np.searchsorted(times, end_ns, side='right'))
+            oldest_needed = newest - self.criteria.min_samples
+            if oldest_needed < 0:
+                return None
+            start_ns = min(start_ns, int(times[oldest_needed]))
+        return start_ns
+
+    def _staleness(self, now_ns: int) -> str:
+        """Say which streams lack samples for a full window after the move, and why."""
+        window_ns = int(self.criteria.window_s * _NS_PER_S)
+        after_move_ns = self._move_end_ns + window_ns
+        end_ns = self._common_latest_ns()
+        lacking = []
+        for name, samples in self._streams():
+            if not samples.times:
+                lacking.append(f'{name}: no samples')
+            elif samples.times[-1] < after_move_ns:
+                lacking.append(f'{name}: newest sample '
+                               f'{(now_ns - samples.times[-1]) / _NS_PER_S:.2f} s old')
+            else:
+                times = np.fromiter(samples.times, dtype=np.int64)
+                inside = int(((times >= end_ns - window_ns) & (times <= end_ns)).sum())
+                lacking.append(f'{name}: {inside} in the last window')
+        return (f'no full window of samples after the move (at least '
+                f'{self.criteria.min_samples} per stream, in both halves: '
+                + '; '.join(lacking) + ')')
+
     def _judge(self, now_ns: int) -> None:
         criteria = self.criteria
         waited_s = (now_ns - self._move_end_ns) / _NS_PER_S
         if waited_s < criteria.window_s:
             return
         sweep, direction, target_m = self.steps[self._step]
-        verdict = settle_window(criteria, target_m, self._drive.arrays(),
-                                {name: s.arrays() for name, s in self._targets.items()},
-                                now_ns)
+        # The window ends at the newest sample that every stream has reached, not at
+        # now: on a loaded host the tracker's points arrive a steady 0.1-0.2 s late,
+        # and a window ending at now would find its second half empty.
+        end_ns = self._common_latest_ns()
+        verdict = None
+        if end_ns is not None and end_ns - int(criteria.window_s * _NS_PER_S) \
+                >= self._move_end_ns:
+            drive = self._drive.arrays()
+            targets = {name: s.arrays() for name, s in self._targets.items()}
+            start_ns = self._window_start_ns(end_ns, [drive[0]] + [
+                times for times, _ in targets.values()])
+            if start_ns is not None and start_ns >= self._move_end_ns:
+                verdict = settle_window(criteria, target_m, drive, targets, end_ns, start_ns)
         timed_out = waited_s >= criteria.max_wait_s
         if verdict is None or not verdict[0]:
             if not timed_out:
@@ -456,7 +512,7 @@ class SweepRunner:
                        f'settle within {criteria.max_wait_s} s')
             if criteria.on_timeout == 'abort' or verdict is None:
                 raise SettleTimeoutError(message + (
-                    '' if verdict is not None else ': no drive or tracker samples'))
+                    '' if verdict is not None else f': {self._staleness(now_ns)}'))
             self.warnings.append(message + ': flagged')
         settled, drive_mean, means, drive_count, tracker_count = verdict
         pose = tip_pose_from_targets(means[self.layout.names[0]], means[self.layout.names[1]],
