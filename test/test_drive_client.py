@@ -230,3 +230,13 @@ def test_shutdown_never_raises_when_the_bus_is_gone(channel, rig):
     bus.shutdown()
     client.shutdown()
     client.shutdown()
+
+
+def test_a_position_reading_carries_the_time_its_frame_was_received(client, rig):
+    client.start(timeout_s=2.0)
+    before_s = time.time()
+    count = client.tpdo_count
+    wait_until(lambda: (client.poll() or True) and client.tpdo_count > count + 2, 1.0,
+               'TPDOs')
+    # The virtual bus stamps frames with the system clock, as SocketCAN and socketcand do.
+    assert before_s <= client.position_time_s <= time.time()

@@ -128,6 +128,9 @@ class DriveClient:
         self.statusword: Optional[int] = None
         self.state: Optional[DriveState] = None
         self.position_counts = 0
+        # When the latest TPDO was received, from the frame's own timestamp (s since the
+        # epoch: SocketCAN's kernel receive time, socketcand's frame time); 0.0 if unknown.
+        self.position_time_s = 0.0
         self.tpdo_count = 0
         self.last_tpdo_s: Optional[float] = None
         self.nmt_state: Optional[NmtState] = None
@@ -179,6 +182,7 @@ class DriveClient:
             self.statusword = statusword
             self.state = state
             self.position_counts = position_counts
+            self.position_time_s = message.timestamp
             self.last_tpdo_s = self._clock()
             self.tpdo_count += 1
         elif cob_id == self._heartbeat_id:

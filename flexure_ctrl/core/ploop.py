@@ -307,6 +307,18 @@ class FirstOrderHold:
             return 0.0
         return self.position_m + self.velocity_m_s * (self._age_ns(now_ns) / _NS_PER_S)
 
+    def position_at(self, when_ns: int) -> float:
+        """
+        Return the setpoint (m) due at ``when_ns``, which may lie before the latest stamp.
+
+        For comparing a measurement with the setpoint of its own time: the line through
+        the latest setpoint, followed at most ``max_age_s`` either way.
+        """
+        if self.stamp_ns is None:
+            return 0.0
+        offset_ns = min(max(when_ns - self.stamp_ns, -self._max_age_ns), self._max_age_ns)
+        return self.position_m + self.velocity_m_s * (offset_ns / _NS_PER_S)
+
     def velocity(self, now_ns: int) -> float:
         """Return the setpoint velocity in m/s at ``now_ns``, zero once the age cap is hit."""
         if self.stamp_ns is None or now_ns - self.stamp_ns >= self._max_age_ns:

@@ -78,6 +78,9 @@ _RESET_TIMEOUT_S = 1.0
 _DISABLE_CONFIRM_S = 0.2
 # Cap on the time step the watchdog ramp uses after a stalled cycle (periods).
 _MAX_DT_PERIODS = 10
+# A position reading older than this (ns) is compared with the setpoint of now: its frame
+# time is then more likely wrong (a clock step) than the reading that old.
+_MAX_READING_AGE_NS = 50_000_000
 # GIL hand-over interval (s) in the node's process: a loop thread waking up waits at most
 # this long for the executor thread to let go (Python's default is 5 ms).
 _SWITCH_INTERVAL_S = 0.0002
@@ -139,6 +142,7 @@ class ActuatorLoop(Node):
         self.loop = ProportionalLoop(self._double('gain_per_s'),
                                      self._double('velocity_feedforward'), self.limits)
         self._age_from_stamp = self.get_parameter('setpoint_age_from_stamp').value
+        self._compensate_reading_age = self.get_parameter('compensate_reading_age').value
         watchdog_timeout_s = self._double('watchdog_timeout_s')
         self._watchdog_timeout_ns = int(watchdog_timeout_s * _NS_PER_S)
         self.watchdog = SetpointWatchdog.from_limits(watchdog_timeout_s, self.limits)
@@ -247,6 +251,11 @@ class ActuatorLoop(Node):
         self.declare_parameter('heartbeat_timeout_s', 0.5, float_descriptor(
             'largest gap (s) between drive heartbeats (and position TPDOs)', 0.01, 10.0,
             read_only=True))
+        self.declare_parameter('compensate_reading_age', True, typed_descriptor(
+            ParameterType.PARAMETER_BOOL,
+            'compare each potentiometer reading with the setpoint of the time its TPDO was '
+            'received (the CAN frame timestamp, system clock) instead of the setpoint of now; '
+            'readings over 50 ms old are compared with now', read_only=True))
         self.declare_parameter('setpoint_age_from_stamp', True, typed_descriptor(
             ParameterType.PARAMETER_BOOL,
             'judge the age of a setpoint by its header stamp (all nodes share one clock), so one '
@@ -464,8 +473,16 @@ class ActuatorLoop(Node):
         if hold.stamp_ns is None:
             setpoint_m, setpoint_velocity_m_s = measured_m, 0.0
         else:
-            setpoint_m = hold.position(now_ns)
             setpoint_velocity_m_s = hold.velocity(now_ns)
+            # The reading is a CAN round trip old, and that age varies from cycle to
+            # cycle. Compared with the setpoint of now, a moving rod would show velocity
+            # times that age as error, noise the loop would act on: compare it with the
+            # setpoint of the reading's own time instead.
+            reading_age_ns = time.time_ns() - int(client.position_time_s * _NS_PER_S)
+            if self._compensate_reading_age and 0 < reading_age_ns < _MAX_READING_AGE_NS:
+                setpoint_m = hold.position_at(now_ns - reading_age_ns)
+            else:
+                setpoint_m = hold.position(now_ns)
         loop = self.loop
         command_m_s = loop.command(setpoint_m, setpoint_velocity_m_s, measured_m)
         watchdog = self.watchdog
