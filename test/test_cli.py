@@ -1,8 +1,12 @@
 """The flexure-ctrl command line: solve, demo, designs, and honest errors."""
 
 import csv
+import io
+import os
+import sys
 
 from flexure_ctrl.cli.main import main
+from flexure_ctrl.cli.up_command import ProcessGroup, SIM_BACKGROUND_NICENESS
 from flexure_ctrl.core.design import load_design
 from flexure_ctrl.core.kinematics import TwoLinkArm
 import numpy as np
@@ -62,3 +66,20 @@ def test_designs_lists_every_design(capsys):
     for name in ('pf', 'cfa', 'cfb', 'cfc', 'cfa_m4', 'cfb_m1'):
         assert f'\n{name} ' in out
     assert 'Not recommended' in out
+
+
+def test_a_background_process_runs_at_lower_priority_and_a_real_time_one_does_not():
+    out = io.StringIO()
+    group = ProcessGroup(out=out)
+    probe = [sys.executable, '-c', 'import os; print("niceness", os.nice(0))']
+    try:
+        for name, niceness in (('loop', 0), ('recorder', SIM_BACKGROUND_NICENESS)):
+            process, ready = group.start(name, probe, ready_marker='niceness',
+                                         niceness=niceness)
+            assert ready.wait(30.0)
+            process.wait(30.0)
+    finally:
+        group.stop_all()
+    mine = os.nice(0)
+    assert f'[loop] niceness {mine}' in out.getvalue()
+    assert f'[recorder] niceness {min(mine + SIM_BACKGROUND_NICENESS, 19)}' in out.getvalue()

@@ -32,6 +32,14 @@ READY_TIMEOUT_S = 60.0
 # order; stopped in reverse. The actuator loops come last and one at a time: once a drive
 # is enabled its RPDO timeout runs, and Python processes importing numpy and scipy on
 # the same cores could starve the 500 Hz loop past it.
+# With --sim everything shares one machine, often a small one. The simulated hardware and
+# the two actuator loops are the real-time part; the others run at this niceness so that
+# the scheduler serves the real-time part first (their output is stamped at its source, and
+# the loops extrapolate late setpoints). Any user may raise a niceness, so this needs no
+# privilege. On the rig nothing is changed.
+SIM_BACKGROUND_NICENESS = 10
+SIM_REAL_TIME = ('sim', 'actuator_1', 'actuator_2')
+
 NODES = (
     ('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
     ('inverse_solver', 'inverse_solver', [], 'branch'),
@@ -50,7 +58,10 @@ def add_parser(commands) -> None:
                     'instances and tracker_bridge as separate processes, with the design '
                     'YAML and the rig YAML as parameter files. Output lines are prefixed with '
                     'the process name; Ctrl-C stops everything cleanly. The path starts when '
-                    'trajectory_generator/start is called, or at once with --autostart.')
+                    'trajectory_generator/start is called, or at once with --autostart. '
+                    f'With --sim, all but the simulator and the actuator loops run at '
+                    f'niceness +{SIM_BACKGROUND_NICENESS}, so that on a small machine the '
+                    'simulated hardware and the loops are served first.')
     parser.add_argument('--design', required=True,
                         help='design name (config/designs/<name>.yaml) or a design YAML path')
     parser.add_argument('--sim', action='store_true',
@@ -92,13 +103,22 @@ class ProcessGroup:
             self._out.write(f'[{name}] {line}\n')
             self._out.flush()
 
-    def start(self, name: str, command: List[str], ready_marker: Optional[str] = None):
+    def start(self, name: str, command: List[str], ready_marker: Optional[str] = None,
+              niceness: int = 0):
+        """Start ``command``; ``niceness`` > 0 lowers its scheduling priority by that much."""
         ready = threading.Event()
+
+        def prepare_child() -> None:
+            _die_with_parent()
+            if niceness:
+                os.nice(niceness)
+
         process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            text=True, bufsize=1, start_new_session=True, preexec_fn=_die_with_parent)
+            text=True, bufsize=1, start_new_session=True, preexec_fn=prepare_child)
         self.children.append((name, process))
-        self.say('up', f'started {name} (pid {process.pid})')
+        self.say('up', f'started {name} (pid {process.pid})'
+                 + (f' at niceness +{niceness}' if niceness else ''))
 
         def pump():
             for line in process.stdout:
@@ -239,7 +259,9 @@ def run(arguments: argparse.Namespace) -> int:
                                               '--params-file', str(overrides_file)]
             launches.append((name, _node_command(module, ros_arguments), marker))
         for name, command, marker in launches:
-            _, ready = group.start(name, command, ready_marker=marker)
+            niceness = (SIM_BACKGROUND_NICENESS
+                        if arguments.sim and name not in SIM_REAL_TIME else 0)
+            _, ready = group.start(name, command, ready_marker=marker, niceness=niceness)
             deadline = time.monotonic() + READY_TIMEOUT_S
             while not ready.wait(0.1):
                 if stop_requested.is_set() or time.monotonic() > deadline:
