@@ -73,7 +73,7 @@ def test_a_background_process_runs_at_lower_priority_and_a_real_time_one_does_no
     group = ProcessGroup(out=out)
     probe = [sys.executable, '-c', 'import os; print("niceness", os.nice(0))']
     try:
-        for name, niceness in (('loop', 0), ('recorder', SIM_BACKGROUND_NICENESS)):
+        for name, niceness in (('loop', 0), ('inverse_solver', SIM_BACKGROUND_NICENESS)):
             process, ready = group.start(name, probe, ready_marker='niceness',
                                          niceness=niceness)
             assert ready.wait(30.0)
@@ -82,4 +82,4 @@ def test_a_background_process_runs_at_lower_priority_and_a_real_time_one_does_no
         group.stop_all()
     mine = os.nice(0)
     assert f'[loop] niceness {mine}' in out.getvalue()
-    assert f'[recorder] niceness {min(mine + SIM_BACKGROUND_NICENESS, 19)}' in out.getvalue()
+    assert f'[inverse_solver] niceness {min(mine + SIM_BACKGROUND_NICENESS, 19)}' in out.getvalue()

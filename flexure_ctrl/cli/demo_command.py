@@ -22,7 +22,6 @@ import time
 from typing import List, Optional
 
 from flexure_ctrl.cli import report_command
-from flexure_ctrl.cli.up_command import SIM_BACKGROUND_NICENESS
 from flexure_ctrl.core.correction import DEFAULT_CUTOFF_HZ, IterativeCorrector, path_errors
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.runs import load_last_run, RUN_TOPICS
@@ -93,13 +92,11 @@ def add_parser(commands) -> None:
 class _Process:
     """A child process whose output is read line by line (and echoed unless quiet)."""
 
-    def __init__(self, command: List[str], quiet: bool, prefix: str = '',
-                 niceness: int = 0) -> None:
+    def __init__(self, command: List[str], quiet: bool, prefix: str = '') -> None:
         self.lines: List[str] = []
         self._changed = threading.Condition()
-        self.popen = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
-            preexec_fn=(lambda: os.nice(niceness)) if niceness else None)
+        self.popen = subprocess.Popen(command, stdout=subprocess.PIPE,
+                                      stderr=subprocess.STDOUT, text=True, bufsize=1)
         self._quiet = quiet
         self._prefix = prefix
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -257,7 +254,7 @@ def _start_recorder(bag_dir: Path, bag_name: str, topics, quiet: bool) -> _Proce
     recorder = _Process([sys.executable, '-m', 'flexure_ctrl.nodes.recorder', '--ros-args',
                          '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}',
                          '-p', f'topics:=[{",".join(topics)}]'],
-                        quiet, prefix='[recorder] ', niceness=SIM_BACKGROUND_NICENESS)
+                        quiet, prefix='[recorder] ')
     for topic in RECORDED_BEFORE_START:
         if recorder.wait_for_line(lambda line, t=topic: f'recording {t} [' in line,
                                   RECORDER_TIMEOUT_S) is None:
