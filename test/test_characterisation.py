@@ -316,3 +316,13 @@ def test_points_csv_round_trips(tmp_path):
     # Readable before close: an abort or a crash keeps what was appended.
     assert read_points_csv(tmp_path / 'points.csv') == points[:3]
     csv_file.close()
+
+
+def test_each_joints_table_goes_to_its_own_place_in_the_design(measured_tables):
+    design, tables = measured_tables
+    (summary_1, _, _, plan), (summary_2, *_) = tables['actuator_1'], tables['actuator_2']
+    joint_1 = measured_design(design, summary_1, plan, 'm', 'actuator_1', 'sim')
+    # Joint 2 keeps the nominal table until it is measured itself.
+    assert joint_1.table is summary_1.table and joint_1.joint_table(2) is design.table
+    both = measured_design(joint_1, summary_2, plan, 'm', 'actuator_2', 'sim')
+    assert both.table is summary_1.table and both.table_joint_2 is summary_2.table

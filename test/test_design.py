@@ -1,12 +1,14 @@
 """Design parameter files: the shipped designs, and clear errors for bad files."""
 
 import copy
+from dataclasses import replace
 
 from conftest import arc_design
-from flexure_ctrl.core.design import (available_designs, design_to_parameters,
-                                      find_design_file, load_design)
+from flexure_ctrl.core.design import (available_designs, design_from_parameters,
+                                      design_to_parameters, find_design_file, load_design)
 from flexure_ctrl.core.errors import DesignFileError
 from flexure_ctrl.core.inverse import InverseSolver
+from flexure_ctrl.core.kinematics import TwoLinkArm
 from flexure_ctrl.core.trajectory import SinePath
 import numpy as np
 import pytest
@@ -111,3 +113,26 @@ def test_not_a_parameter_file(tmp_path):
 def test_unknown_design_lists_the_known_ones():
     with pytest.raises(DesignFileError, match='known designs: .*cfa'):
         load_design('no_such_design')
+
+
+def test_joint_2_may_have_a_table_of_its_own_and_the_arm_follows_it():
+    nominal = load_design('cfa')
+    table = nominal.table
+    # Joint 2 bends 2 % more than joint 1 (as a measured coupling might).
+    own = type(table)(table.l0_m, table.x_f_m, table.y_f_m, 1.02 * table.theta_f_rad)
+    design = replace(nominal, table_joint_2=own)
+    loaded = design_from_parameters(design_to_parameters(design))
+    np.testing.assert_array_equal(loaded.table_joint_2.theta_f_rad, own.theta_f_rad)
+    assert loaded.joint_table(1) is loaded.table and loaded.joint_table(2) is not loaded.table
+    assert design_from_parameters(design_to_parameters(nominal)).table_joint_2 is None
+    # Joint 1 alone moves the same in both arms; joint 2 alone moves further in the new one.
+    both, separate = TwoLinkArm.from_design(nominal), TwoLinkArm.from_design(loaded)
+    np.testing.assert_allclose(separate.forward(0.02, 0.0), both.forward(0.02, 0.0))
+    moved = [np.linalg.norm(arm.forward(0.0, 0.03) - arm.forward(0.0, 0.0))
+             for arm in (both, separate)]
+    assert moved[1] > moved[0] * 1.01
+    # A bad joint-2 table is named by its own key.
+    parameters = design_to_parameters(design)
+    parameters['design']['table_joint_2']['theta_f_rad'][3] = -1.0
+    with pytest.raises(DesignFileError, match='table_joint_2.theta_f_rad'):
+        design_from_parameters(parameters)

@@ -27,6 +27,7 @@ import socket
 import sys
 import tempfile
 import threading
+from typing import Optional
 
 from flexure_ctrl.core.characterisation import (
     CharacterisationError, DEFAULT_OFFSET_A_M, DEFAULT_OFFSET_B_M, measured_design,
@@ -88,6 +89,10 @@ def add_parser(commands) -> None:
                         help='start the simulated rig, tracker bridge and actuator loops')
     parser.add_argument('--sim-config', type=Path, metavar='FILE',
                         help='simulator knobs overriding config/simulator.yaml (with --sim)')
+    parser.add_argument('--plant-design', metavar='DESIGN',
+                        help='with --sim: the design the simulated arm is built from '
+                             '(default: --design). Give the nominal design when --design '
+                             'is the file of an earlier run (joint 2 after joint 1)')
     parser.add_argument('--can-port', type=int, metavar='PORT',
                         help='socketcand port of the simulated rig (with --sim)')
     parser.add_argument('--tracker-port', type=int, metavar='PORT',
@@ -131,14 +136,15 @@ def _sim_override(arguments, targets, offsets, folder: Path) -> Path:
 
 
 def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: int,
-                        tracker_port: int, folder: Path) -> bool:
+                        tracker_port: int, folder: Path,
+                        plant_file: Optional[Path] = None) -> bool:
     """
     Start the simulator, tracker bridge and both actuator loops in ``group``.
 
     Not the inverse solver nor the trajectory generator: the characterisation commands
     the actuators itself. Returns whether all came up.
     """
-    from flexure_ctrl.cli.up_command import _node_command, SIM_BACKGROUND_NICENESS, SIM_REAL_TIME
+    from flexure_ctrl.cli.up_command import _node_command
 
     overrides = folder / 'overrides.yaml'
     overrides.write_text(yaml.safe_dump({
@@ -147,7 +153,8 @@ def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: in
         '/tracker_bridge': {'ros__parameters': {'port': tracker_port}}}))
     rig_config = find_config_file('sim.yaml').resolve()
     launches = [('sim', [sys.executable, '-m', 'flexure_ctrl.cli.main', 'sim', '--design',
-                         str(design_file), '--sim-config', str(sim_config), '--can-port',
+                         str(plant_file or design_file), '--sim-config', str(sim_config),
+                         '--can-port',
                          str(can_port), '--tracker-port', str(tracker_port)], 'sim: ready')]
     nodes = (('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
              ('actuator_1', 'actuator_loop',
@@ -159,8 +166,7 @@ def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: in
             '--params-file', str(design_file), '--params-file', str(rig_config),
             '--params-file', str(overrides)]), marker))
     for name, command, marker in launches:
-        _, ready = group.start(name, command, ready_marker=marker, niceness=(
-            0 if name in SIM_REAL_TIME else SIM_BACKGROUND_NICENESS))
+        _, ready = group.start(name, command, ready_marker=marker)
         if not ready.wait(READY_TIMEOUT_S) or group.first_exit.is_set():
             group.say('characterise', f'{name} did not come up')
             return False
@@ -180,6 +186,8 @@ def run(arguments: argparse.Namespace) -> int:
         else f'actuator_{arguments.actuator}'
     design_file = find_design_file(arguments.design).resolve()
     design = load_design(design_file)
+    plant_file = (find_design_file(arguments.plant_design).resolve()
+                  if arguments.plant_design else design_file)
     # Every check that needs no rig comes first: a bad plan never touches the actuators.
     plan = SweepPlan(from_m=arguments.from_mm * 1e-3, to_m=arguments.to_mm * 1e-3,
                      step_m=arguments.step_mm * 1e-3, sweeps=arguments.sweeps,
@@ -215,7 +223,7 @@ def run(arguments: argparse.Namespace) -> int:
             if not start_simulated_rig(group, design_file, sim_config,
                                        arguments.can_port or _free_port(),
                                        arguments.tracker_port or _free_port(),
-                                       Path(folder.name)):
+                                       Path(folder.name), plant_file):
                 raise CharacterisationError('the simulated rig did not come up')
         node, error = _run_node(runner, actuator, design, arguments)
     finally:
@@ -243,7 +251,8 @@ def run(arguments: argparse.Namespace) -> int:
     summary_json['unsettled'] = summary.unsettled
     summary_json['design_file'] = str(design_path)
     if arguments.sim:
-        summary_json.update(_recovery(design, sim_config, actuator, summary, node.other_hold_m))
+        summary_json.update(_recovery(load_design(plant_file), sim_config, actuator, summary,
+                                      node.other_hold_m))
     (out / 'summary.json').write_text(json.dumps(summary_json, indent=2))
     if not arguments.no_plot:
         model = pf_model_table(plan.grid_m) if design.name == 'pf' else None

@@ -71,6 +71,11 @@ def add_parser(commands) -> None:
     parser.add_argument('--rig-config', type=Path, metavar='FILE',
                         help='rig parameter file (default: config/rig.yaml, or config/sim.yaml '
                              'with --sim)')
+    parser.add_argument('--plant-design', metavar='DESIGN',
+                        help='with --sim: the design the simulated arm is built from '
+                             '(default: --design). Give the nominal design (e.g. cfa) when '
+                             '--design is a table measured on the simulated rig by '
+                             'flexure-ctrl characterise')
     parser.add_argument('--sim-config', type=Path, metavar='FILE',
                         help='simulator knobs overriding config/simulator.yaml (with --sim)')
     parser.add_argument('--correction', type=Path, metavar='FILE',
@@ -245,8 +250,10 @@ def run(arguments: argparse.Namespace) -> int:
     try:
         launches = []
         if arguments.sim:
+            plant_file = (find_design_file(arguments.plant_design).resolve()
+                          if arguments.plant_design else design_file)
             command = [sys.executable, '-m', 'flexure_ctrl.cli.main', 'sim',
-                       '--design', str(design_file)]
+                       '--design', str(plant_file)]
             if arguments.sim_config:
                 command += ['--sim-config', str(arguments.sim_config.resolve())]
             if can_port:

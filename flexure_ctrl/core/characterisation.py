@@ -626,6 +626,10 @@ def measured_design(base: Design, summary: Summary, plan: SweepPlan, name: str,
     """
     Return ``base`` with the measured table, marked ``provenance: measured``.
 
+    The table measured goes to its joint: ``table`` for actuator_1, ``table_joint_2`` for
+    actuator_2; the other joint keeps the table it had in ``base``. Characterising
+    actuator_2 with ``base`` the file of a joint-1 run so gives a design measured in full.
+
     The provenance note records the date, the rig, the actuator and the sweep settings,
     and the hysteresis and repeatability figures. The stroke limit is the base design's,
     narrowed to what the sweep covered.
@@ -647,10 +651,15 @@ def measured_design(base: Design, summary: Summary, plan: SweepPlan, name: str,
             f'referred to its commanded extension by the local slope and averaged over '
             f'sweeps and directions. {figures}. Geometry and branch from design '
             f'{base.name!r}.')
+    # The measured joint gets the new table; the other keeps the base design's own.
+    if actuator == 'actuator_2':
+        tables = {'table': base.table, 'table_joint_2': summary.table}
+    else:
+        tables = {'table': summary.table, 'table_joint_2': base.joint_table(2)}
     design = replace(base, name=name, provenance='measured', provenance_note=note,
                      description=f'{base.description} (measured)'.strip(),
-                     stroke_limit_m=stroke_m, table=summary.table, recommended=True,
-                     warning='', source_path=None)
+                     stroke_limit_m=stroke_m, recommended=True, warning='', source_path=None,
+                     **tables)
     # Round-trip through the loader's validation, so a bad table fails here, not later.
     try:
         design_from_parameters(design_to_parameters(design), f'<measured {name}>')

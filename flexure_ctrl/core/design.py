@@ -78,6 +78,16 @@ class Design:
     table: CharacterisationData
     geometry: LinkGeometry
     source_path: Optional[str] = None
+    # Joint 2's own table when the two joints differ (a measured design: each joint is
+    # characterised on its own); None: joint 2 follows ``table`` too, as in the paper.
+    table_joint_2: Optional[CharacterisationData] = None
+
+    def joint_table(self, joint: int) -> CharacterisationData:
+        """Return the table of joint 1 or 2."""
+        if joint not in (1, 2):
+            raise ValueError(f'joint must be 1 or 2, got {joint!r}')
+        return self.table_joint_2 if joint == 2 and self.table_joint_2 is not None \
+            else self.table
 
 
 def config_search_dirs() -> list:
@@ -174,32 +184,41 @@ def _ros_parameters(document: Any, path: PathLike) -> Mapping:
     return node['ros__parameters']
 
 
-def design_from_parameters(parameters: Mapping, path: PathLike = '<memory>') -> Design:
-    """Build a validated :class:`Design` from the ``ros__parameters`` mapping."""
-    reader = _KeyReader(parameters, path)
-    table = CharacterisationData(*(reader.float_array(f'design.table.{key}')
+def _read_table(reader: '_KeyReader', prefix: str, path: PathLike) -> CharacterisationData:
+    """Read and check one characterisation table under ``prefix`` (e.g. ``design.table``)."""
+    table = CharacterisationData(*(reader.float_array(f'{prefix}.{key}')
                                    for key in TABLE_KEYS))
     lengths = {key: len(getattr(table, key)) for key in TABLE_KEYS}
     if len(set(lengths.values())) != 1:
-        raise DesignFileError(path, 'design.table',
-                              f'arrays must have equal lengths, got {lengths}')
+        raise DesignFileError(path, prefix, f'arrays must have equal lengths, got {lengths}')
     if lengths['l0_m'] < MIN_TABLE_POINTS:
-        raise DesignFileError(path, 'design.table.l0_m',
+        raise DesignFileError(path, f'{prefix}.l0_m',
                               f'needs at least {MIN_TABLE_POINTS} points')
     for key in ('l0_m', 'theta_f_rad'):
         steps = np.diff(getattr(table, key))
         if np.any(steps <= 0.0):
             first = int(np.argmax(steps <= 0.0))
             raise DesignFileError(
-                path, f'design.table.{key}',
+                path, f'{prefix}.{key}',
                 f'must be strictly increasing, but entry {first + 1} does not exceed entry '
                 f'{first}')
+    return table
+
+
+def design_from_parameters(parameters: Mapping, path: PathLike = '<memory>') -> Design:
+    """Build a validated :class:`Design` from the ``ros__parameters`` mapping."""
+    reader = _KeyReader(parameters, path)
+    table = _read_table(reader, 'design.table', path)
+    table_joint_2 = None
+    if reader.has('design.table_joint_2'):
+        table_joint_2 = _read_table(reader, 'design.table_joint_2', path)
     stroke = reader.positive_float('design.stroke_limit_m')
-    if -stroke < table.l0_m[0] or stroke > table.l0_m[-1]:
-        raise DesignFileError(
-            path, 'design.stroke_limit_m',
-            f'stroke +-{stroke} m reaches outside the table '
-            f'[{table.l0_m[0]}, {table.l0_m[-1]}] m')
+    for prefix, checked in (('design.table', table), ('design.table_joint_2', table_joint_2)):
+        if checked is not None and (-stroke < checked.l0_m[0] or stroke > checked.l0_m[-1]):
+            raise DesignFileError(
+                path, 'design.stroke_limit_m',
+                f'stroke +-{stroke} m reaches outside the table {prefix} '
+                f'[{checked.l0_m[0]}, {checked.l0_m[-1]}] m')
     geometry = LinkGeometry(
         link1_length_m=reader.positive_float('design.geometry.link1_length_m'),
         link1_offset_m=reader.finite_float('design.geometry.link1_offset_m'),
@@ -216,7 +235,8 @@ def design_from_parameters(parameters: Mapping, path: PathLike = '<memory>') -> 
         stroke_limit_m=stroke,
         table=table,
         geometry=geometry,
-        source_path=str(path))
+        source_path=str(path),
+        table_joint_2=table_joint_2)
 
 
 class _KeyReader:
@@ -240,6 +260,10 @@ class _KeyReader:
 
     def _fail(self, dotted: str, problem: str):
         raise DesignFileError(self._path, dotted, problem)
+
+    def has(self, dotted: str) -> bool:
+        """Return whether the key is present (for optional sections)."""
+        return self._get(dotted, None) is not None
 
     def string(self, dotted: str, default: Any = _MISSING) -> str:
         value = self._get(dotted, default)
@@ -289,7 +313,7 @@ def design_to_parameters(design: Design) -> dict:
     """Return the ``ros__parameters`` mapping that :func:`design_from_parameters` reads."""
     table = design.table
     geometry = design.geometry
-    return {
+    parameters = {
         'design': {
             'name': design.name,
             'description': design.description,
@@ -303,6 +327,10 @@ def design_to_parameters(design: Design) -> dict:
             'geometry': {key: float(getattr(geometry, key)) for key in GEOMETRY_KEYS},
         }
     }
+    if design.table_joint_2 is not None:
+        parameters['design']['table_joint_2'] = {
+            key: [float(v) for v in getattr(design.table_joint_2, key)] for key in TABLE_KEYS}
+    return parameters
 
 
 def nest_dotted(flat: Mapping) -> dict:

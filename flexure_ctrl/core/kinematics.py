@@ -53,9 +53,16 @@ class TwoLinkArm:
 
     @classmethod
     def from_design(cls, design: Design) -> 'TwoLinkArm':
-        """Arm whose two joints both follow the design's table, as in the paper."""
+        """
+        Arm whose joints follow the design's tables.
+
+        Both follow the one table, as in the paper, unless the design holds a table of
+        its own for joint 2 (a measured design).
+        """
         table = CharacterisationTable(design.table)
-        return cls(table, table, design.geometry)
+        if design.table_joint_2 is None:
+            return cls(table, table, design.geometry)
+        return cls(table, CharacterisationTable(design.table_joint_2), design.geometry)
 
     def components(self, l01_m: np.ndarray, l02_m: np.ndarray) -> Tuple[np.ndarray, ...]:
         """

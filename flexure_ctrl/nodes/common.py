@@ -76,6 +76,9 @@ _DESIGN_PARAMETERS = (
       'symmetric actuator stroke limit (m)')]
     + [(f'design.table.{key}', ParameterType.PARAMETER_DOUBLE_ARRAY,
         'characterisation table column (m or rad)') for key in TABLE_KEYS]
+    + [(f'design.table_joint_2.{key}', ParameterType.PARAMETER_DOUBLE_ARRAY,
+        "joint 2's own table column (m or rad), if the joints differ; optional")
+       for key in TABLE_KEYS]
     + [(f'design.geometry.{key}', ParameterType.PARAMETER_DOUBLE, 'link geometry (m)')
        for key in ('link1_length_m', 'link1_offset_m', 'link2_length_m', 'link2_offset_m')])
 
