@@ -25,6 +25,7 @@ from pathlib import Path
 import socket
 import subprocess
 import sys
+from typing import Optional
 
 from flexure_ctrl.cli.report_command import PAPER_TABLE_1
 from flexure_ctrl.core.design import find_config_file
@@ -44,7 +45,8 @@ def variant_file(name: str):
     return None if name == 'default' else VARIANTS_DIR / f'{name}.yaml'
 
 
-def run_demo(design: str, variant: str, arguments) -> dict:
+def run_demo(design: str, variant: str, arguments) -> Optional[dict]:
+    """Run one demo; return its summary, or None if it failed (its log says why)."""
     out = arguments.out / f'{design}_{variant}'
     command = [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--design', design,
                '--iterations', str(arguments.iterations), '--period', str(arguments.period),
@@ -58,7 +60,9 @@ def run_demo(design: str, variant: str, arguments) -> dict:
     (out / 'demo.log').parent.mkdir(parents=True, exist_ok=True)
     (out / 'demo.log').write_text(result.stdout)
     if result.returncode != 0:
-        raise RuntimeError(f'demo {design} {variant} failed:\n{result.stdout[-2000:]}')
+        print(f'demo {design} {variant} failed (exit {result.returncode}):\n'
+              f'{result.stdout[-2000:]}', file=sys.stderr, flush=True)
+        return None
     return json.loads((out / 'summary.json').read_text())
 
 
@@ -96,12 +100,19 @@ def main() -> int:
     arguments = parser.parse_args()
     find_config_file('simulator.yaml')  # fail early outside the project environment
     lines = ['| design | sim variant | original max x / y (mm) | 1 correction: reduction x / y '
-             '(%) [paper] | 3 corrections: max x / y (mm) | verdict |',
+             '(%) [paper] | 3 corrections: max x / y (mm) (% of original) | verdict |',
              '|---|---|---|---|---|---|']
     all_ok = True
     for design in arguments.designs:
         for variant in arguments.variants:
-            result = verdict(design, variant, run_demo(design, variant, arguments))
+            summary = run_demo(design, variant, arguments)
+            if summary is None:
+                all_ok = False
+                lines.append(f'| {design} | {variant} | the demo failed: see '
+                             f'{arguments.out / f"{design}_{variant}" / "demo.log"} | | | FAIL |')
+                print(lines[-1], flush=True)
+                continue
+            result = verdict(design, variant, summary)
             ok = result.get('once_beats_paper', False) and result.get('third_ok', False)
             all_ok &= ok
             once = result.get('once_reduction_percent', (float('nan'),) * 2)
@@ -110,7 +121,9 @@ def main() -> int:
             lines.append(
                 f'| {design} | {variant} | {result["original_mm"][0]:.2f} / '
                 f'{result["original_mm"][1]:.2f} | {once[0]:.0f} / {once[1]:.0f} '
-                f'[{paper[0]} / {paper[1]}] | {third[0]:.3f} / {third[1]:.3f} | '
+                f'[{paper[0]} / {paper[1]}] | {third[0]:.3f} / {third[1]:.3f} '
+                f'({100 * third[0] / result["original_mm"][0]:.1f} / '
+                f'{100 * third[1] / result["original_mm"][1]:.1f} %) | '
                 f'{"pass" if ok else "FAIL"} |')
             print(lines[-1], flush=True)
     arguments.out.mkdir(parents=True, exist_ok=True)
