@@ -139,10 +139,11 @@ class Rig:
             self._spinner.join(timeout=5.0)
 
     def wait_for_actuators(self):
-        def both_enabled():
-            return sum('operation enabled' in line for line in self.lines) >= 2
+        # up says so once both drives are enabled and both loops hear the solver.
+        def all_up():
+            return any('[up] all processes up' in line for line in self.lines)
 
-        assert self.spin_until(both_enabled, 90.0), 'actuator loops never came up:\n' \
+        assert self.spin_until(all_up, 90.0), 'actuator loops never came up:\n' \
             + '\n'.join(self.lines[-40:])
         assert self.spin_until(lambda: graph_connected(self.node), 30.0), 'graph not connected'
 

@@ -19,7 +19,7 @@ import sys
 import tempfile
 import threading
 import time
-from typing import List, Optional
+from typing import List, Tuple, Union
 
 from flexure_ctrl.core.design import find_config_file, find_design_file, nest_dotted
 import yaml
@@ -32,23 +32,25 @@ READY_TIMEOUT_S = 60.0
 # order; stopped in reverse. The actuator loops come last and one at a time: once a drive
 # is enabled its RPDO timeout runs, and Python processes importing numpy and scipy on
 # the same cores could starve the 500 Hz loop past it.
-# With --sim everything shares one machine, often a small one. The nodes that make the
-# setpoints run at this niceness so that the scheduler serves the simulated hardware, the
-# actuator loops and the measurement chain (tracker bridge, recorder) first: setpoints are
-# stamped where they are made and the loops extrapolate late ones, whereas a late
-# measurement chain falls behind and loses the end of a recording. Any user may raise a
-# niceness, so this needs no privilege. On the rig nothing is changed.
-SIM_BACKGROUND_NICENESS = 10
-SIM_BACKGROUND = ('trajectory_generator', 'inverse_solver')
+# With --sim everything shares one machine, often a small one. The simulated hardware and
+# the actuator loops are the real-time part: they run at this (higher) priority when the
+# user may raise it (root, or CAP_SYS_NICE), so that the scheduler serves them first and
+# the other nodes share the rest as equals. (Nicing the others instead starved them: a
+# niced setpoint node stalled past the loops' watchdog when the machine was saturated.)
+# On the rig nothing is changed.
+SIM_REAL_TIME_NICENESS = -5
+SIM_REAL_TIME = ('sim', 'actuator_1', 'actuator_2')
 
 NODES = (
     ('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
     ('inverse_solver', 'inverse_solver', [], 'branch'),
     ('trajectory_generator', 'trajectory_generator', [], 'call ~/start'),
+    # A loop is up when its drive is enabled and it hears the inverse solver: a path started
+    # before the second would leave that actuator standing while the other moves.
     ('actuator_1', 'actuator_loop', ['-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'],
-     'operation enabled'),
+     ('operation enabled', 'setpoints from 1 publisher')),
     ('actuator_2', 'actuator_loop', ['-r', '__node:=actuator_2', '-p', 'actuator:=actuator_2'],
-     'operation enabled'),
+     ('operation enabled', 'setpoints from 1 publisher')),
 )
 
 
@@ -60,9 +62,9 @@ def add_parser(commands) -> None:
                     'YAML and the rig YAML as parameter files. Output lines are prefixed with '
                     'the process name; Ctrl-C stops everything cleanly. The path starts when '
                     'trajectory_generator/start is called, or at once with --autostart. '
-                    f'With --sim, {" and ".join(SIM_BACKGROUND)} run at niceness '
-                    f'+{SIM_BACKGROUND_NICENESS}, so that on a small machine the simulated '
-                    'hardware, the loops and the tracker are served first.')
+                    f'With --sim, the simulator and the actuator loops run at niceness '
+                    f'{SIM_REAL_TIME_NICENESS:+d} where permitted (root or CAP_SYS_NICE), so '
+                    'that on a small machine the simulated hardware is served first.')
     parser.add_argument('--design', required=True,
                         help='design name (config/designs/<name>.yaml) or a design YAML path')
     parser.add_argument('--sim', action='store_true',
@@ -109,29 +111,42 @@ class ProcessGroup:
             self._out.write(f'[{name}] {line}\n')
             self._out.flush()
 
-    def start(self, name: str, command: List[str], ready_marker: Optional[str] = None,
-              niceness: int = 0):
-        """Start ``command``; ``niceness`` > 0 lowers its scheduling priority by that much."""
+    def start(self, name: str, command: List[str],
+              ready_marker: Union[str, Tuple[str, ...], None] = None, niceness: int = 0):
+        """
+        Start ``command``, its niceness changed by ``niceness`` (negative: higher priority).
+
+        A change the user may not make (a negative one without privilege) is skipped; the
+        process then says so on its output. The returned event is set once every
+        ``ready_marker`` (one string or several) has appeared in the output, or at exit.
+        """
         ready = threading.Event()
+        awaited = {ready_marker} if isinstance(ready_marker, str) else set(ready_marker or ())
 
         def prepare_child() -> None:
             _die_with_parent()
             if niceness:
-                os.nice(niceness)
+                try:
+                    os.nice(niceness)
+                except PermissionError:
+                    os.write(2, f'niceness {niceness:+d} not permitted; running at the '
+                                f'default priority\n'.encode())
 
         process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             text=True, bufsize=1, start_new_session=True, preexec_fn=prepare_child)
         self.children.append((name, process))
         self.say('up', f'started {name} (pid {process.pid})'
-                 + (f' at niceness +{niceness}' if niceness else ''))
+                 + (f' at niceness {niceness:+d}' if niceness else ''))
 
         def pump():
             for line in process.stdout:
                 line = line.rstrip('\n')
                 self.say(name, line)
-                if ready_marker and ready_marker in line:
-                    ready.set()
+                if awaited:
+                    awaited.difference_update([m for m in awaited if m in line])
+                    if not awaited:
+                        ready.set()
             code = process.wait()
             if not self.stopping:
                 self.say('up', f'{name} exited unexpectedly with status {code}')
@@ -267,8 +282,8 @@ def run(arguments: argparse.Namespace) -> int:
                                               '--params-file', str(overrides_file)]
             launches.append((name, _node_command(module, ros_arguments), marker))
         for name, command, marker in launches:
-            niceness = (SIM_BACKGROUND_NICENESS
-                        if arguments.sim and name in SIM_BACKGROUND else 0)
+            niceness = (SIM_REAL_TIME_NICENESS
+                        if arguments.sim and name in SIM_REAL_TIME else 0)
             _, ready = group.start(name, command, ready_marker=marker, niceness=niceness)
             deadline = time.monotonic() + READY_TIMEOUT_S
             while not ready.wait(0.1):

@@ -56,6 +56,7 @@ from flexure_ctrl.nodes.common import RCLError, SETPOINTS_TOPIC, typed_descripto
 import numpy as np
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -79,8 +80,10 @@ _DISABLE_CONFIRM_S = 0.2
 # Cap on the time step the watchdog ramp uses after a stalled cycle (periods).
 _MAX_DT_PERIODS = 10
 # A position reading older than this (ns) is compared with the setpoint of now: its frame
-# time is then more likely wrong (a clock step) than the reading that old.
-_MAX_READING_AGE_NS = 50_000_000
+# time is then more likely wrong (a clock step) than the reading that old. Up to it, an
+# old reading (a stalled bus or drive) is still compared with the setpoint of its own
+# time, so the loop does not pile up a correction for motion it has not seen yet.
+_MAX_READING_AGE_NS = 1_000_000_000
 # GIL hand-over interval (s) in the node's process: a loop thread waking up waits at most
 # this long for the executor thread to let go (Python's default is 5 ms).
 _SWITCH_INTERVAL_S = 0.0002
@@ -189,8 +192,9 @@ class ActuatorLoop(Node):
         # Only the newest setpoint matters; best effort also matches reliable publishers.
         setpoint_qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                                   reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(JointState, SETPOINTS_TOPIC, self._on_setpoints,
-                                 setpoint_qos)
+        self.create_subscription(
+            JointState, SETPOINTS_TOPIC, self._on_setpoints, setpoint_qos,
+            event_callbacks=SubscriptionEventCallbacks(matched=self._on_setpoints_matched))
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/quick_stop', self._on_quick_stop)
         self.add_post_set_parameters_callback(self._on_parameters_set)
@@ -255,7 +259,7 @@ class ActuatorLoop(Node):
             ParameterType.PARAMETER_BOOL,
             'compare each potentiometer reading with the setpoint of the time its TPDO was '
             'received (the CAN frame timestamp, system clock) instead of the setpoint of now; '
-            'readings over 50 ms old are compared with now', read_only=True))
+            'readings over 1 s old are compared with now', read_only=True))
         self.declare_parameter('setpoint_age_from_stamp', True, typed_descriptor(
             ParameterType.PARAMETER_BOOL,
             'judge the age of a setpoint by its header stamp (all nodes share one clock), so one '
@@ -548,6 +552,12 @@ class ActuatorLoop(Node):
         self._notify_diagnostics()
 
     # ------------------------------------------------------------------ inputs
+
+    def _on_setpoints_matched(self, status) -> None:
+        # Discovery of the setpoint publisher ends some time after this node is up (seconds
+        # on a loaded machine); a path started before it would find this actuator deaf.
+        # `up` waits for this line.
+        self.get_logger().info(f'setpoints from {status.current_count} publisher(s)')
 
     def _on_setpoints(self, message: JointState) -> None:
         try:
