@@ -144,7 +144,7 @@ def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: in
     Not the inverse solver nor the trajectory generator: the characterisation commands
     the actuators itself. Returns whether all came up.
     """
-    from flexure_ctrl.cli.up_command import _node_command, SIM_REAL_TIME, SIM_REAL_TIME_NICENESS
+    from flexure_ctrl.cli.up_command import _node_command
 
     overrides = folder / 'overrides.yaml'
     overrides.write_text(yaml.safe_dump({
@@ -166,8 +166,7 @@ def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: in
             '--params-file', str(design_file), '--params-file', str(rig_config),
             '--params-file', str(overrides)]), marker))
     for name, command, marker in launches:
-        _, ready = group.start(name, command, ready_marker=marker, niceness=(
-            SIM_REAL_TIME_NICENESS if name in SIM_REAL_TIME else 0))
+        _, ready = group.start(name, command, ready_marker=marker)
         if not ready.wait(READY_TIMEOUT_S) or group.first_exit.is_set():
             group.say('characterise', f'{name} did not come up')
             return False

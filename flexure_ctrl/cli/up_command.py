@@ -32,14 +32,16 @@ READY_TIMEOUT_S = 60.0
 # order; stopped in reverse. The actuator loops come last and one at a time: once a drive
 # is enabled its RPDO timeout runs, and Python processes importing numpy and scipy on
 # the same cores could starve the 500 Hz loop past it.
-# With --sim everything shares one machine, often a small one. The simulated hardware and
-# the actuator loops are the real-time part: they run at this (higher) priority when the
-# user may raise it (root, or CAP_SYS_NICE), so that the scheduler serves them first and
-# the other nodes share the rest as equals. (Nicing the others instead starved them: a
-# niced setpoint node stalled past the loops' watchdog when the machine was saturated.)
-# On the rig nothing is changed.
-SIM_REAL_TIME_NICENESS = -5
-SIM_REAL_TIME = ('sim', 'actuator_1', 'actuator_2')
+# With --sim everything shares one machine, often a small one. The nodes that make the
+# setpoints run at this niceness so that the scheduler serves the simulated hardware, the
+# actuator loops and the measurement chain (tracker bridge, recorder) first: setpoints are
+# stamped where they are made and the loops extrapolate late ones (config/sim.yaml: up to
+# 0.5 s), whereas a late measurement chain falls behind and loses the end of a recording.
+# (Raising the simulator and loops to -5 instead starved the recorder: a demo's recording
+# then ended before the run's last tracker points arrived.) Any user may raise a niceness,
+# so this needs no privilege. On the rig nothing is changed.
+SIM_BACKGROUND_NICENESS = 10
+SIM_BACKGROUND = ('trajectory_generator', 'inverse_solver')
 
 NODES = (
     ('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
@@ -62,9 +64,9 @@ def add_parser(commands) -> None:
                     'YAML and the rig YAML as parameter files. Output lines are prefixed with '
                     'the process name; Ctrl-C stops everything cleanly. The path starts when '
                     'trajectory_generator/start is called, or at once with --autostart. '
-                    f'With --sim, the simulator and the actuator loops run at niceness '
-                    f'{SIM_REAL_TIME_NICENESS:+d} where permitted (root or CAP_SYS_NICE), so '
-                    'that on a small machine the simulated hardware is served first.')
+                    f'With --sim, {" and ".join(SIM_BACKGROUND)} run at niceness '
+                    f'+{SIM_BACKGROUND_NICENESS}, so that on a small machine the simulated '
+                    'hardware, the loops and the tracker are served first.')
     parser.add_argument('--design', required=True,
                         help='design name (config/designs/<name>.yaml) or a design YAML path')
     parser.add_argument('--sim', action='store_true',
@@ -282,8 +284,8 @@ def run(arguments: argparse.Namespace) -> int:
                                               '--params-file', str(overrides_file)]
             launches.append((name, _node_command(module, ros_arguments), marker))
         for name, command, marker in launches:
-            niceness = (SIM_REAL_TIME_NICENESS
-                        if arguments.sim and name in SIM_REAL_TIME else 0)
+            niceness = (SIM_BACKGROUND_NICENESS
+                        if arguments.sim and name in SIM_BACKGROUND else 0)
             _, ready = group.start(name, command, ready_marker=marker, niceness=niceness)
             deadline = time.monotonic() + READY_TIMEOUT_S
             while not ready.wait(0.1):
