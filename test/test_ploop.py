@@ -161,6 +161,12 @@ def test_hold_gives_the_setpoint_of_an_earlier_time_along_its_line():
     # Capped both ways.
     assert hold.position_at(0) == pytest.approx(0.010 - 0.005 * 0.05)
     assert hold.position_at(2_000 * MS) == pytest.approx(0.010 + 0.005 * 0.05)
+    # A reading's setpoint is that of its own time, unless its age is unknown or implausible.
+    assert hold.position_for_reading(1_004 * MS, 14 * MS, 1_000 * MS) == \
+        pytest.approx(hold.position_at(990 * MS))
+    for age_ns in (0, -5 * MS, 1_000 * MS):
+        assert hold.position_for_reading(1_004 * MS, age_ns, 1_000 * MS) == \
+            pytest.approx(hold.position(1_004 * MS))
 
 
 def _track_a_sine(seed: int, compare_with_reading_time: bool) -> np.ndarray:
@@ -187,7 +193,7 @@ def _track_a_sine(seed: int, compare_with_reading_time: bool) -> np.ndarray:
         age_cycles = int(rng.integers(1, 7))
         reading_m = history[-age_cycles]
         if compare_with_reading_time:
-            setpoint_m = hold.position_at(now_ns - age_cycles * dt_ns)
+            setpoint_m = hold.position_for_reading(now_ns, age_cycles * dt_ns, 1_000 * MS)
         else:
             setpoint_m = hold.position(now_ns)
         command = loop.command(setpoint_m, hold.velocity(now_ns), reading_m)

@@ -116,11 +116,10 @@ class ProcessGroup:
     def start(self, name: str, command: List[str],
               ready_marker: Union[str, Tuple[str, ...], None] = None, niceness: int = 0):
         """
-        Start ``command``, its niceness changed by ``niceness`` (negative: higher priority).
+        Start ``command``, its niceness raised by ``niceness`` (>= 0: lower priority).
 
-        A change the user may not make (a negative one without privilege) is skipped; the
-        process then says so on its output. The returned event is set once every
-        ``ready_marker`` (one string or several) has appeared in the output, or at exit.
+        The returned event is set once every ``ready_marker`` (one string or several) has
+        appeared in the output, or at exit.
         """
         ready = threading.Event()
         awaited = {ready_marker} if isinstance(ready_marker, str) else set(ready_marker or ())
@@ -128,18 +127,14 @@ class ProcessGroup:
         def prepare_child() -> None:
             _die_with_parent()
             if niceness:
-                try:
-                    os.nice(niceness)
-                except PermissionError:
-                    os.write(2, f'niceness {niceness:+d} not permitted; running at the '
-                                f'default priority\n'.encode())
+                os.nice(niceness)  # raising it needs no privilege
 
         process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             text=True, bufsize=1, start_new_session=True, preexec_fn=prepare_child)
         self.children.append((name, process))
         self.say('up', f'started {name} (pid {process.pid})'
-                 + (f' at niceness {niceness:+d}' if niceness else ''))
+                 + (f' at niceness +{niceness}' if niceness else ''))
 
         def pump():
             for line in process.stdout:

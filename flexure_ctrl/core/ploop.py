@@ -319,6 +319,20 @@ class FirstOrderHold:
         offset_ns = min(max(when_ns - self.stamp_ns, -self._max_age_ns), self._max_age_ns)
         return self.position_m + self.velocity_m_s * (offset_ns / _NS_PER_S)
 
+    def position_for_reading(self, now_ns: int, reading_age_ns: int,
+                             max_reading_age_ns: int) -> float:
+        """
+        Return the setpoint (m) to compare with a position reading ``reading_age_ns`` old.
+
+        That of the reading's own time: against the setpoint of now, a moving actuator
+        would show velocity times the reading's (varying) age as error. An age outside
+        ``(0, max_reading_age_ns)`` (unknown, or implausible: a clock step) gives the
+        setpoint of now.
+        """
+        if 0 < reading_age_ns < max_reading_age_ns:
+            return self.position_at(now_ns - reading_age_ns)
+        return self.position(now_ns)
+
     def velocity(self, now_ns: int) -> float:
         """Return the setpoint velocity in m/s at ``now_ns``, zero once the age cap is hit."""
         if self.stamp_ns is None or now_ns - self.stamp_ns >= self._max_age_ns:

@@ -478,13 +478,11 @@ class ActuatorLoop(Node):
             setpoint_m, setpoint_velocity_m_s = measured_m, 0.0
         else:
             setpoint_velocity_m_s = hold.velocity(now_ns)
-            # The reading is a CAN round trip old, and that age varies from cycle to
-            # cycle. Compared with the setpoint of now, a moving rod would show velocity
-            # times that age as error, noise the loop would act on: compare it with the
-            # setpoint of the reading's own time instead.
-            reading_age_ns = time.time_ns() - int(client.position_time_s * _NS_PER_S)
-            if self._compensate_reading_age and 0 < reading_age_ns < _MAX_READING_AGE_NS:
-                setpoint_m = hold.position_at(now_ns - reading_age_ns)
+            if self._compensate_reading_age:
+                # The reading is a CAN round trip old; its frame time says how old.
+                reading_age_ns = time.time_ns() - int(client.position_time_s * _NS_PER_S)
+                setpoint_m = hold.position_for_reading(now_ns, reading_age_ns,
+                                                       _MAX_READING_AGE_NS)
             else:
                 setpoint_m = hold.position(now_ns)
         loop = self.loop
