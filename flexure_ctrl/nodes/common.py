@@ -114,9 +114,11 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RCLError:
-        # A signal that shuts the context down while the executor is building its wait
-        # set surfaces as RCLError (ros2/rclpy#398); only then is it a clean stop.
+    except RuntimeError:
+        # A signal shuts the context down from under the executor. Mid wait-set it raises
+        # RCLError (ros2/rclpy#398); mid take_message a bare pybind11 RuntimeError
+        # ('Unable to convert call argument'). Either is a clean stop only when the
+        # context is already down; any other RuntimeError is a real fault.
         if rclpy.ok():
             raise
     finally:
