@@ -88,7 +88,9 @@ class SimulatedRig:
         self.actuators = []
         self.drives = []
         for node_id in drives['node_ids']:
-            bus = can.Bus(interface='virtual', channel=self._virtual_channel)
+            # Timestamps preserved: a drive stamps each frame with the instant it describes.
+            bus = can.Bus(interface='virtual', channel=self._virtual_channel,
+                          preserve_timestamps=True)
             actuator = LeadScrewActuator(screw, np.random.default_rng(self._rng.integers(2**32)))
             self._buses.append(bus)
             self.actuators.append(actuator)
@@ -123,7 +125,10 @@ class SimulatedRig:
             rng=np.random.default_rng(self._rng.integers(2**32)),
             host=network['host'], port=int(network['tracker_port']))
         self._period_s = 1.0 / float(config['physics_rate_hz'])
-        self._physics_time_s = time.monotonic()
+        # (time of the last physics step, ((rod position, velocity) of each actuator)),
+        # replaced whole after every step: a sample taken while a step is half done (one
+        # drive stepped, the other not) would mix two instants.
+        self._rods = self._rod_snapshot(time.monotonic())
         self._stop = threading.Event()
         self._physics: Optional[threading.Thread] = None
         self._shut_down = False
@@ -137,8 +142,12 @@ class SimulatedRig:
         from the last step keeps a stall of the simulator out of what the tracker sees
         (it would look like the arm stopping, which no real arm does when a PC stalls).
         """
-        ahead_s = min(max(time.monotonic() - self._physics_time_s, 0.0), MAX_EXTRAPOLATION_S)
-        return tuple(a.rod_position_m + a.velocity_m_s * ahead_s for a in self.actuators)
+        physics_time_s, rods = self._rods
+        ahead_s = min(max(time.monotonic() - physics_time_s, 0.0), MAX_EXTRAPOLATION_S)
+        return tuple(position_m + velocity_m_s * ahead_s for position_m, velocity_m_s in rods)
+
+    def _rod_snapshot(self, physics_time_s: float) -> tuple:
+        return physics_time_s, tuple((a.rod_position_m, a.velocity_m_s) for a in self.actuators)
 
     def true_end_point(self) -> tuple:
         """Return the true end point now, ``(x, y)`` (m, rig frame), from the true rods."""
@@ -187,17 +196,25 @@ class SimulatedRig:
         last_s = next_s
         while not self._stop.is_set():
             now_s = time.monotonic()
-            dt_s = now_s - last_s
+            self.step_physics(now_s, now_s - last_s, time.time())
             last_s = now_s
-            for drive in self.drives:
-                drive.tick(now_s, dt_s)
-            self._physics_time_s = now_s
             next_s += self._period_s
             delay_s = next_s - time.monotonic()
             if delay_s > 0:
                 self._stop.wait(delay_s)
             elif delay_s < -0.1:
                 next_s = time.monotonic()  # fell far behind: do not try to catch up
+
+    def step_physics(self, now_s: float, dt_s: float, wall_time_s: float) -> None:
+        """
+        Advance both drives by ``dt_s`` (s) to ``now_s`` (s, monotonic clock): one physics step.
+
+        :param wall_time_s: the system clock at ``now_s`` (s): the drives place each frame
+            at its timestamp within the step (:meth:`SimulatedDrive.tick`).
+        """
+        for drive in self.drives:
+            drive.tick(now_s, dt_s, wall_time_s)
+        self._rods = self._rod_snapshot(now_s)
 
     def shutdown(self) -> None:
         """Stop everything; idempotent."""
