@@ -9,6 +9,7 @@ subprocess, and watches the rig from a probe node on the test's private domain.
 import json
 import os
 from pathlib import Path
+import signal
 import socket
 import subprocess
 import sys
@@ -129,26 +130,16 @@ def test_refuses_while_another_node_commands(rig, tmp_path):
         rig['node'].destroy_publisher(publisher)
 
 
-def test_abort_by_service_saves_the_points_and_leaves_the_actuator_stopped(rig, tmp_path):
-    process = characterise(tmp_path, wait=False)
-    client = rig['node'].create_client(Trigger, '/characteriser/abort')
-    try:
-        csv_path = tmp_path / 'points.csv'
-        wait_for(lambda: csv_path.exists() and len(read_points_csv(csv_path)) >= 2, 60,
-                 'two points')
-        assert client.wait_for_service(timeout_sec=10.0)
-        future = client.call_async(Trigger.Request())
-        wait_for(future.done, 10, 'the abort reply')
-        assert future.result().success
-        output, _ = process.communicate(timeout=30)
-    finally:
-        rig['node'].destroy_client(client)
-        if process.poll() is None:
-            process.kill()
-    assert process.returncode == 130 and 'aborted by ~/abort' in output
-    points = read_points_csv(csv_path)
+def wait_for_two_points(csv_path):
+    wait_for(lambda: csv_path.exists() and len(read_points_csv(csv_path)) >= 2, 60,
+             'two points')
+
+
+def assert_aborted_with_points_and_stopped(rig, process, output, out, reason):
+    assert process.returncode == 130 and reason in output
+    points = read_points_csv(out / 'points.csv')
     assert 2 <= len(points) < 38
-    assert 'aborted' in json.loads((tmp_path / 'summary.json').read_text())['error']
+    assert 'aborted' in json.loads((out / 'summary.json').read_text())['error']
     # Stopped: zero commanded velocity, and the rod stays put (half a second of states).
     states = rig['states']
     wait_for(lambda: states and states[-1].velocity[0] == 0.0, 5, 'zero velocity')
@@ -160,6 +151,35 @@ def test_abort_by_service_saves_the_points_and_leaves_the_actuator_stopped(rig, 
     assert all(m.velocity[0] == 0.0 for m in after)
     positions = [m.position[0] for m in after]
     assert max(positions) - min(positions) < 2e-4  # pot noise, no motion
+
+
+def test_abort_by_service_saves_the_points_and_leaves_the_actuator_stopped(rig, tmp_path):
+    process = characterise(tmp_path, wait=False)
+    client = rig['node'].create_client(Trigger, '/characteriser/abort')
+    try:
+        wait_for_two_points(tmp_path / 'points.csv')
+        assert client.wait_for_service(timeout_sec=10.0)
+        future = client.call_async(Trigger.Request())
+        wait_for(future.done, 10, 'the abort reply')
+        assert future.result().success
+        output, _ = process.communicate(timeout=30)
+    finally:
+        rig['node'].destroy_client(client)
+        if process.poll() is None:
+            process.kill()
+    assert_aborted_with_points_and_stopped(rig, process, output, tmp_path, 'aborted by ~/abort')
+
+
+def test_ctrl_c_saves_the_points_and_leaves_the_actuator_stopped(rig, tmp_path):
+    process = characterise(tmp_path, wait=False)
+    try:
+        wait_for_two_points(tmp_path / 'points.csv')
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert_aborted_with_points_and_stopped(rig, process, output, tmp_path, 'aborted by Ctrl-C')
 
 
 def test_full_sweep_recovers_the_simulators_true_joint(rig, tmp_path):
