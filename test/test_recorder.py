@@ -18,6 +18,7 @@ from conftest import spin_in_thread
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.bag import BagReader
 from flexure_ctrl.nodes.player import Player, PlayerConfigError
+from flexure_ctrl.nodes.recorder import Recorder
 from geometry_msgs.msg import PointStamped, PoseStamped
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
@@ -25,7 +26,9 @@ from nav_msgs.msg import Path
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter as RclpyParameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
@@ -272,6 +275,32 @@ def test_stopping_mid_recording_leaves_a_complete_bag(tmp_path, ros, signal_numb
     # Every message the recorder received, none lost on the way: 0, 1, ..., n-1.
     assert xs == [float(i) for i in range(recorded)]
     assert len(publisher.published[POINTS]) >= recorded
+
+
+def test_stopping_takes_the_messages_still_waiting_in_the_queues(tmp_path, ros):
+    # The recorder in this process, never spun: its take timer never fires, so the bag
+    # gets exactly what safe_stop() (run on Ctrl-C) takes from the queues.
+    ros_ = ros()
+    publisher = Publisher(ros_.node, topics=(POINTS,))
+    recorder = Recorder(context=ros_.context, parameter_overrides=[
+        RclpyParameter('bag_dir', value=str(tmp_path)),
+        RclpyParameter('bag_name', value='unspun'),
+        RclpyParameter('topics', value=[POINTS])])
+    try:
+        wait_for(lambda: recorder.discover() or recorder.recording, 10.0,
+                 'the recorder to subscribe')
+        wait_for(publisher.matched, 10.0, 'the recorder to match the publisher')
+        publisher.start(ticks=40)
+        wait_for(lambda: len(publisher.published[POINTS]) == 40, 5.0, '40 messages published')
+        # Reliable: acknowledged means in the recorder's queue.
+        assert publisher.publishers[POINTS].wait_for_all_acked(Duration(seconds=5.0))
+        assert recorder.recorded == 0
+        recorder.safe_stop()
+    finally:
+        publisher.stop()
+        recorder.destroy_node()
+    xs = [d.point.x for _, d in BagReader(recorder.bag_path).decoded()]
+    assert xs == [float(i) for i in range(40)]
 
 
 def test_sigkill_leaves_the_earlier_messages_readable(tmp_path, ros):
