@@ -338,3 +338,71 @@ class FirstOrderHold:
         if self.stamp_ns is None or now_ns - self.stamp_ns >= self._max_age_ns:
             return 0.0
         return self.velocity_m_s
+
+
+class BacklashTakeUp:
+    """
+    Velocity feedforward that carries a lead screw's nut across its backlash on reversal.
+
+    The loop reads the potentiometer on the rod, after the backlash. Where the setpoint
+    reverses, the nut must first cross the dead band (``backlash_m`` wide) while the rod
+    stands still; the proportional term only acts once that shows as error, so every
+    reversal leaves a short, sharp error at the end point. This adds, when the setpoint
+    velocity changes sign, a velocity pulse of ``backlash_m / take_up_s`` for
+    ``take_up_s``: the nut's crossing, fed forward. The pulse's integral is the
+    backlash whatever the cycle times (the last cycle of a pulse is shortened).
+
+    Until the setpoint has moved one way (the start of a run), the nut's side is unknown
+    and nothing is added. A setpoint velocity within ``+-min_speed_m_s`` keeps the side.
+
+    :param backlash_m: width of the dead band (m), 0 or more; 0 turns it off.
+    :param take_up_s: duration of the pulse (s), > 0.
+    :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0.
+    :raises LoopConfigError: a value out of range.
+    """
+
+    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', '_side', '_remaining_m')
+
+    def __init__(self, backlash_m: float, take_up_s: float = 0.02,
+                 min_speed_m_s: float = 1e-4) -> None:
+        _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
+                 f'backlash_m must be finite and >= 0, got {backlash_m!r}')
+        _require(math.isfinite(take_up_s) and take_up_s > 0.0,
+                 f'take_up_s must be finite and > 0, got {take_up_s!r}')
+        _require(math.isfinite(min_speed_m_s) and min_speed_m_s > 0.0,
+                 f'min_speed_m_s must be finite and > 0, got {min_speed_m_s!r}')
+        self.backlash_m = float(backlash_m)
+        self.take_up_s = float(take_up_s)
+        self.min_speed_m_s = float(min_speed_m_s)
+        self._side = 0
+        self._remaining_m = 0.0
+
+    def velocity(self, setpoint_velocity_m_s: float, dt_s: float) -> float:
+        """Return the speed (m/s, signed) to add to this cycle's command, for ``dt_s`` (s)."""
+        if self.backlash_m == 0.0:
+            return 0.0
+        if setpoint_velocity_m_s > self.min_speed_m_s:
+            moving = 1
+        elif setpoint_velocity_m_s < -self.min_speed_m_s:
+            moving = -1
+        else:
+            moving = self._side
+        if moving != self._side:
+            # A reversal: the nut crosses the whole band (the first move of a run: none).
+            self._remaining_m = moving * self.backlash_m if self._side else 0.0
+            self._side = moving
+        if self._remaining_m == 0.0 or dt_s <= 0.0:
+            return 0.0
+        pulse_m_s = math.copysign(self.backlash_m / self.take_up_s, self._remaining_m)
+        step_m = pulse_m_s * dt_s
+        if abs(step_m) >= abs(self._remaining_m):
+            velocity_m_s = self._remaining_m / dt_s
+            self._remaining_m = 0.0
+            return velocity_m_s
+        self._remaining_m -= step_m
+        return pulse_m_s
+
+    def reset(self) -> None:
+        """Forget the nut's side (after a stop: it is unknown again)."""
+        self._side = 0
+        self._remaining_m = 0.0

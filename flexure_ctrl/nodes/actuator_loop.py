@@ -48,7 +48,8 @@ import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.drive_client import DriveClient, DriveError
 from flexure_ctrl.core.errors import FlexureCtrlError
-from flexure_ctrl.core.ploop import FirstOrderHold, LoopLimits, ProportionalLoop
+from flexure_ctrl.core.ploop import BacklashTakeUp, FirstOrderHold, LoopLimits
+from flexure_ctrl.core.ploop import ProportionalLoop
 from flexure_ctrl.core.ploop import SetpointWatchdog
 from flexure_ctrl.nodes.common import ACTUATOR_NAMES, actuator_state_topic, DIAGNOSTICS_TOPIC
 from flexure_ctrl.nodes.common import float_descriptor, int_descriptor, run_node
@@ -144,6 +145,8 @@ class ActuatorLoop(Node):
                                  max_accel_m_s2=self._double('watchdog_decel_m_s2'))
         self.loop = ProportionalLoop(self._double('gain_per_s'),
                                      self._double('velocity_feedforward'), self.limits)
+        self.backlash = BacklashTakeUp(self._double('backlash_m'),
+                                       self._double('backlash_take_up_s'))
         self._age_from_stamp = self.get_parameter('setpoint_age_from_stamp').value
         self._compensate_reading_age = self.get_parameter('compensate_reading_age').value
         watchdog_timeout_s = self._double('watchdog_timeout_s')
@@ -239,6 +242,11 @@ class ActuatorLoop(Node):
         self.declare_parameter('gain_per_s', 20.0, float_descriptor(
             'proportional gain (1/s): m/s of command per m of error; may change live',
             0.0, 200.0))
+        self.declare_parameter('backlash_m', 0.0, float_descriptor(
+            "the lead screw's backlash (m): on each reversal of the setpoint a velocity "
+            'pulse carries the nut across it; 0: off', 0.0, 0.005, read_only=True))
+        self.declare_parameter('backlash_take_up_s', 0.02, float_descriptor(
+            'duration (s) of that pulse', 0.002, 0.5, read_only=True))
         self.declare_parameter('velocity_feedforward', 1.0, float_descriptor(
             'fraction of the setpoint velocity fed forward; may change live', 0.0, 1.0))
         self.declare_parameter('max_speed_m_s', 0.02, float_descriptor(
@@ -486,7 +494,11 @@ class ActuatorLoop(Node):
             else:
                 setpoint_m = hold.position(now_ns)
         loop = self.loop
-        command_m_s = loop.command(setpoint_m, setpoint_velocity_m_s, measured_m)
+        # The take-up pulse rides on the feedforward, so the limits and the stroke guard
+        # apply to it too (and velocity_feedforward scales it).
+        take_up_m_s = self.backlash.velocity(setpoint_velocity_m_s, dt_s)
+        command_m_s = loop.command(setpoint_m, setpoint_velocity_m_s + take_up_m_s,
+                                   measured_m)
         watchdog = self.watchdog
         was_expired = watchdog.expired
         command_m_s = watchdog.limit(command_m_s, now_ns, dt_s)
