@@ -19,8 +19,10 @@ def rig():
 def test_a_sample_taken_mid_step_sees_one_instant_for_both_rods(rig):
     for actuator in rig.actuators:
         actuator.step(0.01, 1.0)  # both screws running at 10 mm/s
-    start_s = time.monotonic()
-    rig.step_physics(start_s, 0.0, time.time())
+    # Steps stamped ahead of the clock: no extrapolation (ahead <= 0), the test sees
+    # the snapshots themselves whatever this machine's scheduling does meanwhile.
+    start_s = time.monotonic() + 100.0
+    rig.step_physics(start_s, 0.0, time.time() + 100.0)
     before_m = rig.rod_positions_now_m()
     mid_step = []
     tick_of_drive_2 = rig.drives[1].tick
@@ -31,12 +33,12 @@ def test_a_sample_taken_mid_step_sees_one_instant_for_both_rods(rig):
         tick_of_drive_2(*arguments)
 
     rig.drives[1].tick = sample_then_tick
-    rig.step_physics(start_s + 0.020, 0.020, time.time() + 0.020)
+    rig.step_physics(start_s + 0.020, 0.020, time.time() + 100.020)
     (rod_1_stepped_m, sampled_m), = mid_step
     assert rod_1_stepped_m - before_m[0] > 1e-4  # the drive, not enabled, coasts to rest
-    # The sample is the last whole step's, extrapolated over the real time since: under
-    # 2 ms at 10 mm/s, whereas mixing in drive 1's half-done step would add 0.1 mm.
-    assert sampled_m == pytest.approx(before_m, abs=2e-5)
+    # The sample is the last whole step's; mixing in drive 1's half-done step would add
+    # over 0.1 mm.
+    assert sampled_m == pytest.approx(before_m, abs=1e-12)
     after_m = rig.rod_positions_now_m()
     assert after_m[0] == pytest.approx(rod_1_stepped_m, abs=1e-9)
     assert after_m[1] == pytest.approx(rig.actuators[1].rod_position_m, abs=1e-9)
