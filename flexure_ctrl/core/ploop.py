@@ -401,8 +401,3 @@ class BacklashTakeUp:
             return velocity_m_s
         self._remaining_m -= step_m
         return pulse_m_s
-
-    def reset(self) -> None:
-        """Forget the nut's side (after a stop: it is unknown again)."""
-        self._side = 0
-        self._remaining_m = 0.0
