@@ -78,8 +78,9 @@ def add_parser(commands) -> None:
                         help='where the runs are recorded, one bag per iteration '
                              '(default: %(default)s)')
     parser.add_argument('--record-states', action='store_true',
-                        help="also record the actuators' 500 Hz state topics (about half a "
-                             'core more on a small machine)')
+                        help="also record the actuators' 500 Hz state topics; on a 2-core "
+                             'machine this disturbs the runs (two runs of one command then '
+                             'differed by up to 2.2 mm), so use it to diagnose, not for figures')
     parser.add_argument('--can-port', type=int, metavar='PORT',
                         help='socketcand port of the simulated rig (default: config/sim.yaml)')
     parser.add_argument('--tracker-port', type=int, metavar='PORT',
