@@ -42,3 +42,38 @@ def test_a_sample_taken_mid_step_sees_one_instant_for_both_rods(rig):
     after_m = rig.rod_positions_now_m()
     assert after_m[0] == pytest.approx(rod_1_stepped_m, abs=1e-9)
     assert after_m[1] == pytest.approx(rig.actuators[1].rod_position_m, abs=1e-9)
+
+
+def rig_with_backlash(backlash_m):
+    return SimulatedRig(load_design('cfa'),
+                        load_sim_config(overrides={'drives.backlash_m': backlash_m}))
+
+
+def test_a_rod_held_in_the_backlash_is_not_extrapolated_along_its_turning_screw():
+    rig = rig_with_backlash(0.01)
+    try:
+        rest_m = [actuator.rod_position_m for actuator in rig.actuators]
+        for actuator in rig.actuators:
+            actuator.step(0.01, 0.05)  # the screws run up to ~6 mm/s inside the 10 mm band
+        assert [a.rod_position_m for a in rig.actuators] == rest_m
+        assert all(a.velocity_m_s > 5e-3 for a in rig.actuators)
+        # The last whole step ended 0.1 s ago: the tracker extrapolates over that time.
+        rig.step_physics(time.monotonic() - 0.1, 0.001)
+        # Along the screws' velocity the targets would move 0.6 mm; the rods stand.
+        assert rig.rod_positions_now_m() == pytest.approx(rest_m, abs=1e-9)
+    finally:
+        rig.shutdown()
+
+
+def test_a_moving_rod_is_extrapolated_along_its_own_velocity():
+    rig = rig_with_backlash(0.0)
+    try:
+        for actuator in rig.actuators:
+            actuator.step(0.01, 1.0)  # 10 mm/s, settled
+        rig.step_physics(time.monotonic() - 0.1, 0.001)
+        stepped_m = [actuator.rod_position_m for actuator in rig.actuators]
+        ahead_m = [now - stepped for now, stepped in zip(rig.rod_positions_now_m(), stepped_m)]
+        # About 0.1 s (plus this test's own scheduling) at ~10 mm/s.
+        assert all(0.9e-3 < ahead < 2e-3 for ahead in ahead_m), ahead_m
+    finally:
+        rig.shutdown()

@@ -126,7 +126,8 @@ class SimulatedRig:
         # (time of the last physics step, ((rod position, velocity) of each actuator)),
         # replaced whole after every step: a sample taken while a step is half done (one
         # drive stepped, the other not) would mix two instants.
-        self._rods = self._rod_snapshot(time.monotonic())
+        self._rods = (time.monotonic(),
+                      tuple((a.rod_position_m, 0.0) for a in self.actuators))
         self._stop = threading.Event()
         self._physics: Optional[threading.Thread] = None
         self._shut_down = False
@@ -144,8 +145,14 @@ class SimulatedRig:
         ahead_s = min(max(time.monotonic() - physics_time_s, 0.0), MAX_EXTRAPOLATION_S)
         return tuple(position_m + velocity_m_s * ahead_s for position_m, velocity_m_s in rods)
 
-    def _rod_snapshot(self, physics_time_s: float) -> tuple:
-        return physics_time_s, tuple((a.rod_position_m, a.velocity_m_s) for a in self.actuators)
+    def _rod_snapshot(self, physics_time_s: float, rods_before_m: tuple, dt_s: float) -> tuple:
+        # The rod's own velocity over the step, not the screw's: inside the backlash the
+        # screw turns while the rod stands, and extrapolating the screw's velocity moved
+        # the tracker's targets by up to 0.2 mm while the pot showed the rod at rest (the
+        # simulated characterisation then read theta 1.5 mrad off).
+        return physics_time_s, tuple(
+            (a.rod_position_m, (a.rod_position_m - before_m) / dt_s if dt_s > 0.0 else 0.0)
+            for a, before_m in zip(self.actuators, rods_before_m))
 
     def true_end_point(self) -> tuple:
         """Return the true end point now, ``(x, y)`` (m, rig frame), from the true rods."""
@@ -209,9 +216,10 @@ class SimulatedRig:
         # at its send time within a late step made the characterisation of the simulated
         # rig worse (theta recovered to 0.12-2.3 mrad with a hysteresis of 0.3-4.6 mrad,
         # against 0.11-0.23 mrad and 0.22-0.32 mrad without), for a reason not yet found.
+        rods_before_m = tuple(a.rod_position_m for a in self.actuators)
         for drive in self.drives:
             drive.tick(now_s, dt_s)
-        self._rods = self._rod_snapshot(now_s)
+        self._rods = self._rod_snapshot(now_s, rods_before_m, dt_s)
 
     def shutdown(self) -> None:
         """Stop everything; idempotent."""
