@@ -22,7 +22,8 @@ import time
 from typing import List, Optional
 
 from flexure_ctrl.cli import report_command
-from flexure_ctrl.core.correction import DEFAULT_CUTOFF_HZ, IterativeCorrector, path_errors
+from flexure_ctrl.core.correction import (DEFAULT_CUTOFF_HZ, DEFAULT_SPIKE_THRESHOLD,
+                                          IterativeCorrector, path_errors)
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.runs import load_last_run, RUN_TOPICS
 
@@ -68,6 +69,12 @@ def add_parser(commands) -> None:
                              '(default: %(default)s)')
     parser.add_argument('--cutoff-hz', type=float, default=DEFAULT_CUTOFF_HZ, metavar='HZ',
                         help='cutoff of the zero-phase low-pass Q applied to the error '
+                             '(default: %(default)s)')
+    parser.add_argument('--spike-threshold', type=float, default=DEFAULT_SPIKE_THRESHOLD,
+                        metavar='SIGMAS',
+                        help='leave out of learning (and of the gain decision) the sharp '
+                             'errors of a run that the run before did not have, this many '
+                             'robust standard deviations out; 0 learns everything '
                              '(default: %(default)s)')
     parser.add_argument('--sim-config', type=Path, metavar='FILE',
                         help='simulator knobs overriding config/simulator.yaml')
@@ -298,7 +305,8 @@ def run(arguments: argparse.Namespace) -> int:
     stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
     # Bad gains are refused here, before the rig starts.
     corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
-                                   cutoff_hz=arguments.cutoff_hz)
+                                   cutoff_hz=arguments.cutoff_hz,
+                                   spike_threshold=arguments.spike_threshold or None)
     out = arguments.out
     out.mkdir(parents=True, exist_ok=True)
     up = _Process(_up_command(arguments), arguments.quiet)
@@ -321,6 +329,10 @@ def run(arguments: argparse.Namespace) -> int:
             rows.append(row)
             progress.line(f'[demo] iteration {index}: max |e_x| {row["max_abs_error_x_mm"]:.3f}'
                           f' mm, max |e_y| {row["max_abs_error_y_mm"]:.3f} mm  ({bag})')
+            spike_s = corrector.iterations[-1].spike_seconds()
+            if spike_s:
+                progress.line(f'[demo] iteration {index}: {spike_s:.2f} s of error spikes that '
+                              'the run before did not have are not learned')
             if index == arguments.iterations:
                 break
             command = corrector.next_command()

@@ -17,22 +17,31 @@ and the error is taken at the tracker's stamps, against the demand interpolated 
 Tracker dropouts leave gaps: gaps up to ``bridge_max_s`` are bridged by interpolating
 the (smooth) error across them; longer ones are not learned from (the command there
 stays as it was).
+
+A host that stalls for a moment (or a bump to the rig) leaves a sharp error in one run
+that the next run does not repeat. Learning it would put its mirror image into every
+later run, so :class:`IterativeCorrector` leaves out what is sharp in a run's error *and*
+in its difference from the run before (:func:`unrepeated_spikes`); a sharp error that
+both runs share (backlash at a reversal) is still learned.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple, Union
 
 from flexure_ctrl.core.errors import CorrectionError
 import numpy as np
-from scipy.ndimage import uniform_filter1d
+from scipy.ndimage import maximum_filter1d, median_filter, uniform_filter1d
 from scipy.signal import butter, sosfiltfilt
 
 NS_PER_S = 1_000_000_000
 DEFAULT_GRID_RATE_HZ = 100.0
 DEFAULT_CUTOFF_HZ = 1.0
 DEFAULT_BRIDGE_MAX_S = 0.1
+DEFAULT_SPIKE_WINDOW_S = 0.5
+DEFAULT_SPIKE_THRESHOLD = 6.0
+DEFAULT_SPIKE_MARGIN_S = 0.05
 # Median absolute deviation to the standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
 
@@ -216,6 +225,72 @@ def path_errors(run: RecordedRun, grid_rate_hz: float = DEFAULT_GRID_RATE_HZ,
         grid_error_m=grid_error, grid_learnable=learnable)
 
 
+def running_median(values: np.ndarray, rate_hz: float, window_s: float) -> np.ndarray:
+    """Return the running median of ``values`` (along axis 0) over ``window_s`` (s)."""
+    size = max(1, int(round(window_s * rate_hz))) | 1
+    return median_filter(np.asarray(values, dtype=float), size=(size, 1), mode='nearest')
+
+
+def sharp_deviations(values: np.ndarray, rate_hz: float, window_s: float,
+                     threshold: float) -> np.ndarray:
+    """
+    Mask ``(K, 2)`` of samples far from their running median.
+
+    Far is more than ``threshold`` times the signal's scatter: features much narrower
+    than half of ``window_s`` that stand out of it. The scatter is the larger of two
+    robust standard deviations: of the departure from the median, and of the sample
+    noise (from second differences, which a smooth signal does not reach). Where the
+    signal is steep, the running median follows it exactly and the first is zero.
+    """
+    values = np.asarray(values, dtype=float)
+    residual = values - running_median(values, rate_hz, window_s)
+    second = np.diff(values, n=2, axis=0)
+    sigma = np.maximum(_robust_sigma(residual), _robust_sigma(second) / math.sqrt(6.0))
+    return (np.abs(residual) > threshold * sigma) & (sigma > 0.0)
+
+
+def _robust_sigma(values: np.ndarray) -> np.ndarray:
+    """Return the standard deviation (per column) from the median absolute deviation."""
+    return _MAD_TO_SIGMA * np.median(np.abs(values - np.median(values, axis=0)), axis=0)
+
+
+def unrepeated_spikes(errors: 'PathErrors', previous: 'PathErrors',
+                      window_s: float = DEFAULT_SPIKE_WINDOW_S,
+                      threshold: float = DEFAULT_SPIKE_THRESHOLD,
+                      margin_s: float = DEFAULT_SPIKE_MARGIN_S) -> np.ndarray:
+    """
+    Mask ``(K,)`` of the grid samples of ``errors`` inside a spike the previous run lacks.
+
+    A sample is in such a spike when, on some axis, the run's error and its difference
+    from ``previous`` (on the same path times) both depart sharply from their running
+    medians (:func:`sharp_deviations`). A spike both runs share cancels in the
+    difference and is kept. The mask is widened by ``margin_s`` each side, where the
+    spike's flanks sink into the scatter.
+    """
+    if not (window_s > 0.0 and threshold > 0.0 and margin_s >= 0.0):
+        raise CorrectionError(f'spike window {window_s} s, threshold {threshold} and margin '
+                              f'{margin_s} s must be positive')
+    rate_hz = errors.grid_rate_hz
+    before = _interpolate_columns(errors.grid_t_s, previous.grid_t_s, previous.grid_error_m)
+    sharp = (sharp_deviations(errors.grid_error_m, rate_hz, window_s, threshold)
+             & sharp_deviations(errors.grid_error_m - before, rate_hz, window_s, threshold))
+    spikes = np.any(sharp, axis=1)
+    margin = int(round(margin_s * rate_hz))
+    if margin and spikes.any():
+        spikes = maximum_filter1d(spikes.astype(np.uint8), 2 * margin + 1) > 0
+    return spikes
+
+
+def without_spikes(errors: 'PathErrors', spikes: np.ndarray,
+                   window_s: float = DEFAULT_SPIKE_WINDOW_S) -> 'PathErrors':
+    """Return ``errors`` with the grid error inside ``spikes`` replaced by its running median."""
+    spikes = np.asarray(spikes, dtype=bool)
+    if not spikes.any():
+        return errors
+    trend = running_median(errors.grid_error_m, errors.grid_rate_hz, window_s)
+    return replace(errors, grid_error_m=np.where(spikes[:, None], trend, errors.grid_error_m))
+
+
 def learning_weight(learnable: np.ndarray, taper_samples: int) -> np.ndarray:
     """
     Weight of the update: 1 where learnable, 0 in long gaps, ramping in between.
@@ -282,10 +357,22 @@ def _on_path_exactly(errors: PathErrors, values: np.ndarray) -> Tuple[np.ndarray
 
 @dataclass(eq=False)
 class Iteration:
-    """One run of the learning: its errors and their maxima."""
+    """
+    One run of the learning: its errors, their maxima, and its unrepeated spikes.
+
+    ``spikes`` masks the grid samples left out of learning (:func:`unrepeated_spikes`);
+    ``steady_max_abs_error_m`` is the maximum outside them, which scores the run.
+    """
 
     errors: PathErrors
     max_abs_error_m: np.ndarray
+    spikes: np.ndarray
+    steady_max_abs_error_m: np.ndarray
+
+    def spike_seconds(self) -> float:
+        """Return how long (s of path time) the run's error was left out of learning."""
+        return float(np.count_nonzero(self.spikes & self.errors.on_path())
+                     / self.errors.grid_rate_hz)
 
 
 class IterativeCorrector:
@@ -293,9 +380,10 @@ class IterativeCorrector:
     Learn the command path run after run, reducing the gain when the error stalls.
 
     Each run is scored by its maximum errors relative to the first run's (x and y
-    weighted alike). When a run is not better than the best so far by ``stall_ratio``,
-    the gain is multiplied by ``gain_shrink`` and the next command learns from the best
-    run instead; below ``min_gain`` learning stops.
+    weighted alike), outside the spikes it did not share with the run before. When a
+    run is not better than the best so far by ``stall_ratio``, the gain is multiplied by
+    ``gain_shrink`` and the next command learns from the best run instead; below
+    ``min_gain`` learning stops.
 
     :param gain: learning gain ``gamma`` of the first correction (1: the paper's Eq. 8).
     :param later_gain: gain of the corrections after the first. Below 1, each run's
@@ -307,11 +395,15 @@ class IterativeCorrector:
     :param gain_shrink: factor applied to the gain when the error stops falling.
     :param stall_ratio: a run must score below ``stall_ratio`` times the best so far to
         count as improving.
+    :param spike_threshold: from the second run on, error spikes that the run before did
+        not have (:func:`unrepeated_spikes`, this many robust standard deviations) are
+        neither learned nor counted in the score; None learns everything.
     """
 
     def __init__(self, gain: float = 1.0, later_gain: float = 0.5,
                  cutoff_hz: float = DEFAULT_CUTOFF_HZ, min_gain: float = 0.1,
-                 gain_shrink: float = 0.5, stall_ratio: float = 0.95) -> None:
+                 gain_shrink: float = 0.5, stall_ratio: float = 0.95,
+                 spike_threshold: Optional[float] = DEFAULT_SPIKE_THRESHOLD) -> None:
         for name, value in (('gain', gain), ('later_gain', later_gain)):
             if not 0.0 < value <= 2.0:
                 raise CorrectionError(f'the learning {name} must be in (0, 2], got {value}')
@@ -323,16 +415,29 @@ class IterativeCorrector:
         self.min_gain = float(min_gain)
         self.gain_shrink = float(gain_shrink)
         self.stall_ratio = float(stall_ratio)
+        if spike_threshold is not None and not spike_threshold > 0.0:
+            raise CorrectionError(f'spike_threshold must be > 0 (or None), got {spike_threshold}')
+        self.spike_threshold = spike_threshold
         self.iterations: List[Iteration] = []
         self.note = ''
 
     def _score(self, iteration: Iteration) -> float:
-        reference = np.maximum(self.iterations[0].max_abs_error_m, 1e-12)
-        return float(np.sum(iteration.max_abs_error_m / reference))
+        reference = np.maximum(self.iterations[0].steady_max_abs_error_m, 1e-12)
+        return float(np.sum(iteration.steady_max_abs_error_m / reference))
 
     def add_run(self, errors: PathErrors) -> None:
         """Add the errors of the run made with the last proposed command."""
-        self.iterations.append(Iteration(errors, errors.max_abs_error_m()))
+        spikes = np.zeros(errors.grid_t_s.shape, dtype=bool)
+        if self.iterations and self.spike_threshold is not None:
+            spikes = unrepeated_spikes(errors, self.iterations[-1].errors,
+                                       threshold=self.spike_threshold)
+        # The tracker samples whose nearest grid sample lies in a spike.
+        nearest = np.clip(np.rint((errors.sample_t_s - errors.grid_t_s[0])
+                                  * errors.grid_rate_hz).astype(int), 0, len(spikes) - 1)
+        steady = ~spikes[nearest]
+        steady_max = (np.abs(errors.sample_error_m[steady]).max(axis=0) if steady.any()
+                      else errors.max_abs_error_m())
+        self.iterations.append(Iteration(errors, errors.max_abs_error_m(), spikes, steady_max))
 
     def next_command(self) -> Optional[CommandPath]:
         """
@@ -359,7 +464,8 @@ class IterativeCorrector:
         if self.gain < self.min_gain:
             self.note = f'learning stopped: gain {self.gain:.3g} below {self.min_gain:.3g}'
             return None
-        return corrected_command(source.errors, self.gain, self.cutoff_hz)
+        return corrected_command(without_spikes(source.errors, source.spikes), self.gain,
+                                 self.cutoff_hz)
 
 
 def reduction_percent(first: Sequence[float], later: Sequence[float]) -> Tuple[float, ...]:
