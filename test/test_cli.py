@@ -109,3 +109,10 @@ def test_a_process_is_ready_only_once_every_marker_has_appeared(tmp_path):
         assert ready.wait(30.0)
     finally:
         group.stop_all()
+
+
+def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_path, capsys):
+    status = main(['demo', '--spike-threshold', '-1', '--out', str(tmp_path / 'out')])
+    assert status != 0
+    assert '--spike-threshold must be 0' in capsys.readouterr().err
+    assert not (tmp_path / 'out').exists()  # refused before the rig or any output

@@ -301,6 +301,8 @@ def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
 def run(arguments: argparse.Namespace) -> int:
     if arguments.iterations < 0:
         raise DemoError('--iterations must be 0 or more')
+    if not arguments.spike_threshold >= 0.0:
+        raise DemoError('--spike-threshold must be 0 (learn everything) or more')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
     # Bad gains are refused here, before the rig starts.

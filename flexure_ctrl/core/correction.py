@@ -127,9 +127,7 @@ class PathErrors:
         smooth = self.smooth_error_m(cutoff_hz)
         trend = np.column_stack([np.interp(self.sample_t_s, self.grid_t_s, smooth[:, axis])
                                  for axis in range(2)])
-        residual = self.sample_error_m - trend
-        deviation = np.abs(residual - np.median(residual, axis=0))
-        return _MAD_TO_SIGMA * np.median(deviation, axis=0)
+        return _robust_sigma(self.sample_error_m - trend)
 
 
 def zero_phase_lowpass(signal: np.ndarray, sample_rate_hz: float,
@@ -268,8 +266,8 @@ def unrepeated_spikes(errors: 'PathErrors', previous: 'PathErrors',
     spike's flanks sink into the scatter.
     """
     if not (window_s > 0.0 and threshold > 0.0 and margin_s >= 0.0):
-        raise CorrectionError(f'spike window {window_s} s, threshold {threshold} and margin '
-                              f'{margin_s} s must be positive')
+        raise CorrectionError(f'spike window {window_s} s and threshold {threshold} must be '
+                              f'> 0, margin {margin_s} s >= 0')
     rate_hz = errors.grid_rate_hz
     before = _interpolate_columns(errors.grid_t_s, previous.grid_t_s, previous.grid_error_m)
     sharp = (sharp_deviations(errors.grid_error_m, rate_hz, window_s, threshold)
