@@ -1,6 +1,8 @@
 """run_node: how a node's process ends on a signal, and on a real fault."""
 
-from flexure_ctrl.nodes.common import run_node
+import signal
+
+from flexure_ctrl.nodes.common import run_node, run_node_to_a_clean_stop
 import pytest
 import rclpy
 from rclpy.node import Node
@@ -50,3 +52,53 @@ def test_a_runtime_error_with_the_context_up_is_raised_after_the_safe_stop():
         run_node(factory, args=[])
     assert factory.node.safe_stops == 1
     assert not rclpy.ok(), 'run_node must shut the context down whatever ended the spin'
+
+
+class _SignalledMidWrite(Node):
+    """A timer callback that receives a signal between the two halves of one write."""
+
+    def __init__(self, signal_number: int):
+        super().__init__('clean_stop_probe')
+        self.signal_number = signal_number
+        self.halves = []
+        self.safe_stops = 0
+        self.create_timer(0.01, self._write)
+
+    def _write(self) -> None:
+        self.halves.append('first')
+        signal.raise_signal(self.signal_number)
+        self.halves.append('second')
+
+    def safe_stop(self) -> None:
+        self.safe_stops += 1
+
+
+@pytest.mark.parametrize('signal_number', [signal.SIGINT, signal.SIGTERM])
+def test_a_clean_stop_lets_the_callback_finish_its_write(signal_number):
+    nodes = []
+
+    def factory():
+        nodes.append(_SignalledMidWrite(signal_number))
+        return nodes[-1]
+
+    handlers = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+    run_node_to_a_clean_stop(factory, args=[])
+    node = nodes[0]
+    # rclpy's handling (run_node) raises KeyboardInterrupt after 'first', tearing the write.
+    assert node.halves == ['first', 'second']
+    assert node.safe_stops == 1
+    assert not rclpy.ok()
+    assert {number: signal.getsignal(number) for number in handlers} == handlers
+
+
+def test_plain_run_node_tears_that_write():
+    """The failure the clean stop exists for: rclpy's SIGINT lands mid-callback."""
+    nodes = []
+
+    def factory():
+        nodes.append(_SignalledMidWrite(signal.SIGINT))
+        return nodes[-1]
+
+    run_node(factory, args=[])
+    assert nodes[0].halves == ['first']
+    assert nodes[0].safe_stops == 1

@@ -5,16 +5,19 @@ Nodes stay thin: they declare parameters (with descriptors and ranges, so that a
 value is rejected when it is set), wire topics and timers, and call the core.
 """
 
+import signal
+import threading
 from typing import Callable, Optional, Sequence
 
 from flexure_ctrl.core.design import Design, design_from_parameters, nest_dotted, TABLE_KEYS
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rcl_interfaces.msg import ParameterType
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 RCLError = rclpy_implementation.RCLError
 RIG_FRAME = 'rig'
@@ -128,3 +131,49 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
                 safe_stop()
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+# How long the executor waits at most before it looks at a stop request again (s): a
+# Python signal handler runs only once the main thread is back from the wait.
+_STOP_POLL_S = 0.1
+
+
+def run_node_to_a_clean_stop(node_factory: Callable[[], Node],
+                             args: Optional[Sequence[str]] = None) -> None:
+    """
+    Spin one node until Ctrl-C or SIGTERM, letting the callback in progress finish.
+
+    rclpy's own signal handling raises ``KeyboardInterrupt`` wherever the main thread is,
+    which may be halfway through a write (the recorder, in the middle of a record in its
+    chunk: the bag then holds a torn record and reads as garbage from there on). Here the
+    signal only asks for a stop; the executor stops between callbacks, then the node's
+    ``safe_stop()`` runs as with :func:`run_node`. The previous handlers are restored.
+    """
+    stop_requested = threading.Event()
+
+    def request_stop(signal_number, frame) -> None:
+        stop_requested.set()
+
+    previous = {number: signal.signal(number, request_stop)
+                for number in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    try:
+        node = node_factory()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop_requested.is_set():
+            executor.spin_once(timeout_sec=_STOP_POLL_S)
+    except ExternalShutdownException:
+        pass
+    finally:
+        try:
+            if node is not None:
+                safe_stop = getattr(node, 'safe_stop', None)
+                if safe_stop is not None:
+                    safe_stop()
+                node.destroy_node()
+            rclpy.try_shutdown()
+        finally:
+            for number, handler in previous.items():
+                signal.signal(number, handler)

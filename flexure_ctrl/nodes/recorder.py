@@ -32,7 +32,8 @@ from flexure_ctrl.nodes.bag_qos import message_class, qos_to_dict, RECORD_DEPTH
 from flexure_ctrl.nodes.bag_qos import subscription_qos
 from flexure_ctrl.nodes.common import actuator_state_topic, COMMAND_PATH_TOPIC, COMMAND_TOPIC
 from flexure_ctrl.nodes.common import DEMAND_PATH_TOPIC, DEMAND_TOPIC, DIAGNOSTICS_TOPIC
-from flexure_ctrl.nodes.common import float_descriptor, run_node, SETPOINTS_TOPIC
+from flexure_ctrl.nodes.common import float_descriptor, run_node_to_a_clean_stop
+from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
 from flexure_ctrl.nodes.common import tracker_topic, typed_descriptor
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
@@ -205,7 +206,8 @@ def _taken_by_the_timer(*_) -> None:
 
 
 def main(args=None) -> None:
-    run_node(Recorder, args)
+    # A signal must not cut a write short: the bag would hold a torn record.
+    run_node_to_a_clean_stop(Recorder, args)
 
 
 if __name__ == '__main__':
