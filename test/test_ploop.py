@@ -242,6 +242,26 @@ def test_backlash_take_up_keeps_its_side_through_slow_setpoints_and_can_be_off()
         BacklashTakeUp(1e-4, take_up_s=0.0)
 
 
+def test_a_step_the_loop_drives_to_sets_the_nut_side_for_the_next_move():
+    """A run's lead-in: a held first point the loop drives to, then the path."""
+    take_up = BacklashTakeUp(1e-4, take_up_s=0.02)
+    take_up.velocity(0.005, 0.002)          # the last run ended moving outward (+)
+    # The lead-in: the setpoint steps back and holds; the loop drives inward fast.
+    assert take_up.velocity(0.0, 0.002, last_command_m_s=-0.02) == 0.0
+    # The dither of a loop holding still (below push speed) does not move the side.
+    assert take_up.velocity(0.0, 0.002, last_command_m_s=0.001) == 0.0
+    # The path starts outward from there: a reversal of the nut, taken up.
+    added_m = sum(take_up.velocity(0.003, 0.002) * 0.002 for _ in range(20))
+    assert added_m == pytest.approx(1e-4, abs=1e-15)
+    # Without the lead-in's push the same start would not count as a reversal.
+    stale = BacklashTakeUp(1e-4, take_up_s=0.02)
+    stale.velocity(0.005, 0.002)
+    stale.velocity(0.0, 0.002)
+    assert stale.velocity(0.003, 0.002) == 0.0
+    with pytest.raises(LoopConfigError, match='push_speed_m_s'):
+        BacklashTakeUp(1e-4, push_speed_m_s=0.0)
+
+
 def test_backlash_take_up_shrinks_the_rod_error_where_the_setpoint_reverses():
     from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters
     parameters = LeadScrewParameters(lag_s=0.05, max_speed_m_s=0.02, backlash_m=1e-4,

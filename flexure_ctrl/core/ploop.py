@@ -353,18 +353,24 @@ class BacklashTakeUp:
     backlash whatever the cycle times (the last cycle of a pulse is shortened).
 
     Until the setpoint has moved one way (the start of a run), the nut's side is unknown
-    and nothing is added. A setpoint velocity within ``+-min_speed_m_s`` keeps the side.
+    and nothing is added. A setpoint velocity within ``+-min_speed_m_s`` keeps the side,
+    except that a held setpoint the loop itself drives to (a step, such as a run's
+    lead-in to its first point: faster than ``push_speed_m_s``) puts the nut on the side
+    of that drive, so the path's first move away from it is taken up if it reverses.
 
     :param backlash_m: width of the dead band (m), 0 or more; 0 turns it off.
     :param take_up_s: duration of the pulse (s), > 0.
     :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0.
+    :param push_speed_m_s: command speed (m/s) towards a held setpoint that counts as
+        pushing the nut to one side, > 0; above the loop's dither on potentiometer noise.
     :raises LoopConfigError: a value out of range.
     """
 
-    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', '_side', '_remaining_m')
+    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', 'push_speed_m_s', '_side',
+                 '_remaining_m')
 
     def __init__(self, backlash_m: float, take_up_s: float = 0.02,
-                 min_speed_m_s: float = 1e-4) -> None:
+                 min_speed_m_s: float = 1e-4, push_speed_m_s: float = 2e-3) -> None:
         _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
                  f'backlash_m must be finite and >= 0, got {backlash_m!r}')
         _require(math.isfinite(take_up_s) and take_up_s > 0.0,
@@ -373,12 +379,20 @@ class BacklashTakeUp:
                  f'min_speed_m_s must be finite and > 0, got {min_speed_m_s!r}')
         self.backlash_m = float(backlash_m)
         self.take_up_s = float(take_up_s)
+        _require(math.isfinite(push_speed_m_s) and push_speed_m_s > 0.0,
+                 f'push_speed_m_s must be finite and > 0, got {push_speed_m_s!r}')
         self.min_speed_m_s = float(min_speed_m_s)
+        self.push_speed_m_s = float(push_speed_m_s)
         self._side = 0
         self._remaining_m = 0.0
 
-    def velocity(self, setpoint_velocity_m_s: float, dt_s: float) -> float:
-        """Return the speed (m/s, signed) to add to this cycle's command, for ``dt_s`` (s)."""
+    def velocity(self, setpoint_velocity_m_s: float, dt_s: float,
+                 last_command_m_s: float = 0.0) -> float:
+        """
+        Return the speed (m/s, signed) to add to this cycle's command, for ``dt_s`` (s).
+
+        :param last_command_m_s: the loop's previous velocity command (m/s).
+        """
         if self.backlash_m == 0.0:
             return 0.0
         if setpoint_velocity_m_s > self.min_speed_m_s:
@@ -387,6 +401,9 @@ class BacklashTakeUp:
             moving = -1
         else:
             moving = self._side
+            if self._remaining_m == 0.0 and abs(last_command_m_s) > self.push_speed_m_s:
+                # The loop drives to a held setpoint: the nut pushes from that side now.
+                self._side = moving = 1 if last_command_m_s > 0.0 else -1
         if moving != self._side:
             # A reversal: the nut crosses the whole band (the first move of a run: none).
             self._remaining_m = moving * self.backlash_m if self._side else 0.0

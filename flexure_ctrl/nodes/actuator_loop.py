@@ -46,6 +46,7 @@ from typing import List, Optional, Tuple
 
 import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from flexure_ctrl.core.backlash import BacklashEstimateError, BacklashLearner, TravelLog
 from flexure_ctrl.core.drive_client import DriveClient, DriveError
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.ploop import BacklashTakeUp, FirstOrderHold, LoopLimits
@@ -80,6 +81,9 @@ _RESET_TIMEOUT_S = 1.0
 _DISABLE_CONFIRM_S = 0.2
 # Cap on the time step the watchdog ramp uses after a stalled cycle (periods).
 _MAX_DT_PERIODS = 10
+# The longest run (s) whose readings are kept for measuring the backlash; a longer one is
+# measured on its first part.
+_TRAVEL_LOG_S = 120
 # A position reading older than this (ns) is compared with the setpoint of now: its frame
 # time is then more likely wrong (a clock step) than the reading that old. Up to it, an
 # old reading (a stalled bus or drive) is still compared with the setpoint of its own
@@ -147,6 +151,13 @@ class ActuatorLoop(Node):
                                      self._double('velocity_feedforward'), self.limits)
         self.backlash = BacklashTakeUp(self._double('backlash_m'),
                                        self._double('backlash_take_up_s'))
+        self.adapt_backlash = self.get_parameter('adapt_backlash').value
+        self.backlash_learner = BacklashLearner()
+        # Every reading of a run and the commanded travel up to it, for measuring the
+        # backlash once the run is over (a reading can arrive every cycle).
+        self._travel = TravelLog(self.rate_hz * _TRAVEL_LOG_S)
+        self._last_reading_time_s = None
+        self._backlash_thread: Optional[threading.Thread] = None
         self._age_from_stamp = self.get_parameter('setpoint_age_from_stamp').value
         self._compensate_reading_age = self.get_parameter('compensate_reading_age').value
         watchdog_timeout_s = self._double('watchdog_timeout_s')
@@ -247,6 +258,12 @@ class ActuatorLoop(Node):
             'pulse carries the nut across it; 0: off', 0.0, 0.005, read_only=True))
         self.declare_parameter('backlash_take_up_s', 0.02, float_descriptor(
             'duration (s) of that pulse', 0.002, 0.5, read_only=True))
+        self.declare_parameter('adapt_backlash', False, typed_descriptor(
+            ParameterType.PARAMETER_BOOL,
+            'after each run (when its setpoints stop), set the take-up to the backlash '
+            'measured on the last runs (the mean of up to 5). The measurement is made and '
+            'reported on /diagnostics either way; backlash_m is the value until then',
+            read_only=True))
         self.declare_parameter('velocity_feedforward', 1.0, float_descriptor(
             'fraction of the setpoint velocity fed forward; may change live', 0.0, 1.0))
         self.declare_parameter('max_speed_m_s', 0.02, float_descriptor(
@@ -496,7 +513,8 @@ class ActuatorLoop(Node):
         loop = self.loop
         # The take-up pulse rides on the feedforward, so the limits and the stroke guard
         # apply to it too (and velocity_feedforward scales it).
-        take_up_m_s = self.backlash.velocity(setpoint_velocity_m_s, dt_s)
+        take_up_m_s = self.backlash.velocity(setpoint_velocity_m_s, dt_s,
+                                             client.commanded_velocity_m_s)
         command_m_s = loop.command(setpoint_m, setpoint_velocity_m_s + take_up_m_s,
                                    measured_m)
         watchdog = self.watchdog
@@ -507,8 +525,15 @@ class ActuatorLoop(Node):
         except (can.CanError, OSError) as error:
             self._trip(error)
             return
-        self._publish_state(measured_m, client.commanded_velocity_m_s)
+        commanded_m_s = client.commanded_velocity_m_s
+        self._publish_state(measured_m, commanded_m_s)
         self.cycles += 1
+        if not watchdog.expired:
+            now_s = now_ns / _NS_PER_S
+            if client.position_time_s != self._last_reading_time_s:
+                self._last_reading_time_s = client.position_time_s
+                self._travel.reading(now_s, measured_m)
+            self._travel.command(now_s, commanded_m_s)
         # State changes only: logged and reported once, not every cycle.
         if loop.setpoint_clamped is not self._clamping:
             self._clamping = loop.setpoint_clamped
@@ -520,9 +545,40 @@ class ActuatorLoop(Node):
             if watchdog.expired:
                 self.get_logger().warning(
                     f'no setpoint for {watchdog.timeout_s} s: ramping to zero velocity')
+                self._measure_backlash()
             else:
+                self._travel.clear()
                 self.get_logger().info('fresh setpoints: following them')
             self._notify_diagnostics()
+
+    def _measure_backlash(self) -> None:
+        """Measure the run's backlash off the loop thread (lock held); the run has ended."""
+        rows = self._travel.rows()
+        self._travel.clear()
+        if self._backlash_thread is not None and self._backlash_thread.is_alive():
+            return  # runs closer together than one fit: skip this one
+        self._backlash_thread = threading.Thread(
+            target=self._fit_backlash, args=rows, name=f'{self.actuator}_backlash', daemon=True)
+        self._backlash_thread.start()
+
+    def _fit_backlash(self, t_s: np.ndarray, pot_m: np.ndarray, travel_m: np.ndarray) -> None:
+        try:
+            estimate = self.backlash_learner.measure(t_s, pot_m, travel_m)
+        except BacklashEstimateError as error:
+            self.get_logger().info(f'backlash not measured on this run: {error}')
+            return
+        with self._lock:
+            self.backlash_learner.keep(estimate)
+            take_up_m = self.backlash_learner.backlash_m
+            if self.adapt_backlash:
+                self.backlash.backlash_m = take_up_m
+        self.get_logger().info(
+            f'backlash measured: {estimate.backlash_m * 1e3:.3f} mm at {estimate.reversals} '
+            f'reversal(s) (drive lag {estimate.lag_s:.3f} s, residual '
+            f'{estimate.residual_rms_m * 1e6:.1f} um); mean of the last runs '
+            f'{take_up_m * 1e3:.3f} mm'
+            + ('; take-up set to it' if self.adapt_backlash else ' (adapt_backlash off)'))
+        self._notify_diagnostics()
 
     def _publish_state(self, measured_m: float, commanded_m_s: float) -> None:
         """Publish the cycle's state (lock held), reusing one message."""
@@ -700,6 +756,9 @@ class ActuatorLoop(Node):
                 ('setpoints rejected', str(self.setpoints_rejected)),
                 ('setpoints stale', str(self.setpoints_stale)),
                 ('setpoint clamps', str(self.loop.clamp_count)),
+                ('backlash take-up (m)', f'{self.backlash.backlash_m:.6f}'),
+                ('backlash measured (m)', f'{self.backlash_learner.backlash_m:.6f}'
+                 if self.backlash_learner.backlash_m is not None else 'not yet'),
                 ('last emergency', f'0x{client.emergencies[-1][1].error_code:04X}'
                  if client and client.emergencies else 'none'),
             ]
