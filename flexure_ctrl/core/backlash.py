@@ -309,7 +309,7 @@ class BacklashLearner:
 
     @property
     def backlash_m(self) -> Optional[float]:
-        """The reversal-weighted mean (m) of the kept estimates; None before the first."""
+        """Return the reversal-weighted mean (m) of the kept estimates; None before any."""
         if not self.estimates:
             return None
         weights = np.array([e.reversals for e in self.estimates], dtype=float)
