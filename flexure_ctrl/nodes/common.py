@@ -125,12 +125,17 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
         if rclpy.ok():
             raise
     finally:
-        if node is not None:
-            safe_stop = getattr(node, 'safe_stop', None)
-            if safe_stop is not None:
-                safe_stop()
-            node.destroy_node()
-        rclpy.try_shutdown()
+        _tear_down(node)
+
+
+def _tear_down(node: Optional[Node]) -> None:
+    """Run the node's ``safe_stop()`` (if it has one), destroy it, shut rclpy down."""
+    if node is not None:
+        safe_stop = getattr(node, 'safe_stop', None)
+        if safe_stop is not None:
+            safe_stop()
+        node.destroy_node()
+    rclpy.try_shutdown()
 
 
 # How long the executor waits at most before it looks at a stop request again (s): a
@@ -168,12 +173,7 @@ def run_node_to_a_clean_stop(node_factory: Callable[[], Node],
         pass
     finally:
         try:
-            if node is not None:
-                safe_stop = getattr(node, 'safe_stop', None)
-                if safe_stop is not None:
-                    safe_stop()
-                node.destroy_node()
-            rclpy.try_shutdown()
+            _tear_down(node)
         finally:
             for number, handler in previous.items():
                 signal.signal(number, handler)
