@@ -116,3 +116,10 @@ def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_pa
     assert status != 0
     assert '--spike-threshold must be 0' in capsys.readouterr().err
     assert not (tmp_path / 'out').exists()  # refused before the rig or any output
+
+
+def test_demo_refuses_negative_warm_up_runs_before_starting_anything(tmp_path, capsys):
+    status = main(['demo', '--warm-up-runs', '-1', '--out', str(tmp_path / 'out')])
+    assert status != 0
+    assert '--warm-up-runs must be 0 or more' in capsys.readouterr().err
+    assert not (tmp_path / 'out').exists()

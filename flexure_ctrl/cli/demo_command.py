@@ -6,8 +6,12 @@ each iteration: records a run of the path to a bag (the ``recorder`` node), comp
 run's error against the demand (Eq. 7) and the next command path
 (``c_{k+1} = c_k + gamma Q(p - e_k)``; the first is the paper's Eq. 8), and hands it to
 ``trajectory_generator`` for the next run. Iteration 0 is the original run; ``N``
-iterations are ``N`` corrections. At the end it prints the paper's Table 1 for the
-design and writes ``summary.json`` and plots like Figs. 13/16 and 17.
+iterations are ``N`` corrections. Before iteration 0 may come ``--warm-up-runs`` runs of
+the uncorrected path, recorded but neither learned from nor tabled: in them the actuator
+loops measure the lead screws' backlash (taken up from then on where ``adapt_backlash``
+is on), so that every run the table compares has the same loops. At the end it prints
+the paper's Table 1 for the design and writes ``summary.json`` and plots like Figs.
+13/16 and 17.
 """
 
 import argparse
@@ -58,6 +62,11 @@ def add_parser(commands) -> None:
     parser.add_argument('--iterations', type=int, default=3, metavar='N',
                         help='corrections after the original run, 0 or more '
                              '(default: %(default)s)')
+    parser.add_argument('--warm-up-runs', type=int, default=0, metavar='N',
+                        help='runs of the uncorrected path before the original run, recorded '
+                             'but not learned from or tabled: the actuator loops measure the '
+                             'backlash in them, to take it up from the original run on where '
+                             'adapt_backlash is on (default: %(default)s)')
     parser.add_argument('--period', type=float, default=14.0, metavar='S',
                         help='period of the path in s (default: %(default)s, as in the paper)')
     parser.add_argument('--gain', type=float, default=1.0,
@@ -301,6 +310,8 @@ def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
 def run(arguments: argparse.Namespace) -> int:
     if arguments.iterations < 0:
         raise DemoError('--iterations must be 0 or more')
+    if arguments.warm_up_runs < 0:
+        raise DemoError('--warm-up-runs must be 0 or more')
     if not arguments.spike_threshold >= 0.0:
         raise DemoError('--spike-threshold must be 0 (learn everything) or more')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -313,18 +324,28 @@ def run(arguments: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     up = _Process(_up_command(arguments), arguments.quiet)
     operator = None
-    progress = _Progress(arguments.iterations + 1)
+    progress = _Progress(arguments.warm_up_runs + arguments.iterations + 1)
     rows = []
+    warm_up_bags = []
     try:
         if up.wait_for_line(lambda line: 'all processes up' in line, UP_TIMEOUT_S) is None:
             raise DemoError('the simulated rig and nodes did not come up:\n'
                             + '\n'.join(up.lines[-20:]))
         operator = _Operator()
         operator.wait_until_connected(60.0)
+        for index in range(arguments.warm_up_runs):
+            bag = _record_run(up, operator, arguments.bag_dir,
+                              f'demo_{arguments.design}_{stamp}_warm_up_{index}', arguments,
+                              progress, len(warm_up_bags))
+            warm_up_bags.append(str(bag))
+            errors = path_errors(load_last_run(bag))
+            maximum_mm = 1e3 * errors.max_abs_error_m()
+            progress.line(f'[demo] warm-up run {index}: max |e_x| {maximum_mm[0]:.3f} mm, '
+                          f'max |e_y| {maximum_mm[1]:.3f} mm (not learned from)  ({bag})')
         for index in range(arguments.iterations + 1):
             bag = _record_run(up, operator, arguments.bag_dir,
                               f'demo_{arguments.design}_{stamp}_iteration_{index}', arguments,
-                              progress, index)
+                              progress, len(warm_up_bags) + index)
             errors = path_errors(load_last_run(bag))
             corrector.add_run(errors)
             row = report_command.iteration_summary(index, bag, errors)
@@ -356,7 +377,7 @@ def run(arguments: argparse.Namespace) -> int:
     report_command.add_reductions(rows)
     report_command.print_table(arguments.design, rows)
     summary = {'design': arguments.design, 'period_s': arguments.period,
-               'iterations': rows,
+               'warm_up_bags': warm_up_bags, 'iterations': rows,
                'paper_table_1': report_command.PAPER_TABLE_1.get(arguments.design)}
     summary_path = report_command.write_summary(out, summary)
     errors = [iteration.errors for iteration in corrector.iterations]
