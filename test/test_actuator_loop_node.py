@@ -396,3 +396,20 @@ def test_gives_up_after_connect_timeout(harness):
     harness.start_node('-p', 'connect_timeout_s:=0.3')
     with pytest.raises(DriveConnectError, match='not connected after'):
         harness.spin_for(3.0)
+
+
+@pytest.mark.parametrize('watchdog_args', [('-p', 'observer_gain:=0.1',
+                                            '-p', 'backlash_m:=0.0001')])
+def test_with_the_nut_observer_it_follows_a_reversing_setpoint(running, rig):
+    harness = running
+    assert harness.node.observer is not None
+    # Out 4 mm and back to 2 mm: a reversal, which the observer's nut reference crosses.
+    harness.follow(lambda t: (0.01 * (min(t, 0.4) - min(max(t - 0.4, 0.0), 0.2)),
+                              0.01 if t < 0.4 else (-0.01 if t < 0.6 else 0.0)))
+    harness.spin_for(0.7)  # the setpoint has passed 2 mm on its way out; now it holds there
+    harness.spin_until(lambda: abs(rig.actuator.rod_position_m - 0.002) < 5e-5, 4.0,
+                       'rod settled at 2 mm after the reversal')
+    harness.spin_for(0.3)
+    assert rig.actuator.rod_position_m == pytest.approx(0.002, abs=5e-5)
+    # The estimate agrees with the simulated rod (noise 20 um per reading, averaged).
+    assert harness.node.observer.rod_m == pytest.approx(rig.actuator.rod_position_m, abs=2e-5)

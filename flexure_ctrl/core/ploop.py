@@ -418,3 +418,124 @@ class BacklashTakeUp:
             return velocity_m_s
         self._remaining_m -= step_m
         return pulse_m_s
+
+
+class NutObserver:
+    """
+    Estimate of the rod and of the screw nut inside the backlash, for a quieter loop.
+
+    The potentiometer reads the rod, with noise; fed straight into the proportional law
+    that noise moves the actuator (and, through the arm's lever, the end point) a little
+    differently on every run, and while the rod stands still it walks the nut about
+    inside the backlash, so that where a run's first move starts is chance. This
+    predicts instead: the drive's velocity follows the command through a first-order lag
+    (``lag_s``), the nut integrates it, and the rod follows the nut through a dead band
+    ``backlash_m`` wide (a play operator). Each reading corrects rod and nut together by
+    ``correction_gain`` times its innovation, taken against the estimate of the reading's
+    own time (a reading is a CAN round trip old), so the noise is averaged over about
+    ``1 / correction_gain`` readings while drift and a velocity-scale error are still
+    corrected.
+
+    :meth:`error_m` is the loop's error with the nut as the controlled position: the nut
+    belongs one half band ahead of the setpoint in the direction the setpoint moves, so
+    a reversal asks for the crossing of the band at the loop's own gain, and only for
+    the part of it the nut has not crossed already. A held setpoint keeps the side it had.
+    Before the setpoint has moved one way it is the rod's error.
+
+    Positions are in m, velocities in m/s, durations in s, times in integer ns of one
+    monotonic clock.
+
+    :param backlash_m: modelled dead band (m), 0 or more. Better too small than too
+        large: a band wider than the real one drives the rod past the setpoint at every
+        reversal.
+    :param lag_s: modelled time constant (s) of the drive's velocity response, > 0.
+    :param correction_gain: fraction of each reading's innovation applied, in (0, 1].
+    :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0.
+    :param history: loop cycles of rod estimates kept to meet a reading's time, >= 2.
+    :raises LoopConfigError: a value out of range.
+    """
+
+    __slots__ = ('backlash_m', 'lag_s', 'correction_gain', 'min_speed_m_s', 'rod_m', 'nut_m',
+                 'velocity_m_s', 'side', '_times_ns', '_rods_m', '_next', '_count',
+                 '_shift_total_m')
+
+    def __init__(self, backlash_m: float, lag_s: float, correction_gain: float,
+                 min_speed_m_s: float = 1e-4, history: int = 128) -> None:
+        _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
+                 f'backlash_m must be finite and >= 0, got {backlash_m!r}')
+        _require(math.isfinite(lag_s) and lag_s > 0.0,
+                 f'lag_s must be finite and > 0, got {lag_s!r}')
+        _require(math.isfinite(correction_gain) and 0.0 < correction_gain <= 1.0,
+                 f'correction_gain must lie in (0, 1], got {correction_gain!r}')
+        _require(math.isfinite(min_speed_m_s) and min_speed_m_s > 0.0,
+                 f'min_speed_m_s must be finite and > 0, got {min_speed_m_s!r}')
+        _require(history >= 2, f'history must be >= 2, got {history!r}')
+        self.backlash_m = float(backlash_m)
+        self.lag_s = float(lag_s)
+        self.correction_gain = float(correction_gain)
+        self.min_speed_m_s = float(min_speed_m_s)
+        self._times_ns = [0] * history
+        self._rods_m = [0.0] * history
+        self.reset(0.0, 0)
+
+    def reset(self, position_m: float, now_ns: int) -> None:
+        """Put rod and nut at ``position_m`` (m), at rest, side unknown, at ``now_ns``."""
+        self.rod_m = self.nut_m = float(position_m)
+        self.velocity_m_s = 0.0
+        self.side = 0
+        self._next = 0
+        self._count = 0
+        self._shift_total_m = 0.0
+        self._remember(now_ns)
+
+    def _remember(self, now_ns: int) -> None:
+        # Stored net of the corrections so far, so that a later correction moves the
+        # remembered estimates too and two readings never correct the same error twice.
+        self._times_ns[self._next] = now_ns
+        self._rods_m[self._next] = self.rod_m - self._shift_total_m
+        self._next = (self._next + 1) % len(self._times_ns)
+        self._count += 1
+
+    def predict(self, command_m_s: float, dt_s: float, now_ns: int) -> None:
+        """Advance by ``dt_s`` (s) under ``command_m_s`` (m/s), ending at ``now_ns``."""
+        if dt_s > 0.0:
+            # The lag integrated exactly over the cycle, velocity and travel alike.
+            remaining = math.exp(-dt_s / self.lag_s)
+            start_m_s = self.velocity_m_s
+            self.velocity_m_s = command_m_s + (start_m_s - command_m_s) * remaining
+            self.nut_m += command_m_s * dt_s + (start_m_s - command_m_s) * self.lag_s * (
+                1.0 - remaining)
+            half_band_m = 0.5 * self.backlash_m
+            if self.nut_m - self.rod_m > half_band_m:
+                self.rod_m = self.nut_m - half_band_m
+            elif self.nut_m - self.rod_m < -half_band_m:
+                self.rod_m = self.nut_m + half_band_m
+        self._remember(now_ns)
+
+    def _rod_at(self, time_ns: int) -> float:
+        """Return the rod estimate of the latest remembered cycle not after ``time_ns``."""
+        size = len(self._times_ns)
+        newest = (self._next - 1) % size
+        index = newest
+        for _ in range(min(self._count, size) - 1):
+            if self._times_ns[index] <= time_ns:
+                break
+            index = (index - 1) % size
+        return self._rods_m[index] + self._shift_total_m
+
+    def correct(self, reading_m: float, reading_ns: int) -> None:
+        """Correct by a reading ``reading_m`` (m) of the rod taken at ``reading_ns``."""
+        shift_m = self.correction_gain * (reading_m - self._rod_at(reading_ns))
+        self.rod_m += shift_m
+        self.nut_m += shift_m
+        self._shift_total_m += shift_m
+
+    def error_m(self, setpoint_m: float, setpoint_velocity_m_s: float) -> float:
+        """Return the loop error (m) for ``setpoint_m`` (m) moving at ``setpoint_velocity_m_s``."""
+        if setpoint_velocity_m_s > self.min_speed_m_s:
+            self.side = 1
+        elif setpoint_velocity_m_s < -self.min_speed_m_s:
+            self.side = -1
+        if self.side == 0:
+            return setpoint_m - self.rod_m
+        return setpoint_m + self.side * 0.5 * self.backlash_m - self.nut_m
