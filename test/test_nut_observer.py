@@ -79,6 +79,30 @@ def test_the_error_asks_for_the_crossing_of_the_band_on_a_reversal_and_keeps_its
     assert observer.error_m(0.0, -1e-3) == pytest.approx(-1e-4)
 
 
+def test_a_setpoint_that_starts_slowly_turns_the_side_as_it_starts():
+    # An actuator near its turning point starts at a few um/s: the nut must start its
+    # crossing then, not once the setpoint is fast (the rod would stand meanwhile).
+    observer = NutObserver(backlash_m=1e-4, lag_s=0.05, correction_gain=0.1)
+    observer.reset(0.0, 0)
+    observer.error_m(0.0, 1e-3)
+    assert observer.side == 1
+    observer.error_m(0.0, -5e-6)
+    assert observer.side == -1
+
+
+def test_two_readings_far_out_on_one_side_resync_the_estimate():
+    observer = NutObserver(backlash_m=0.0, lag_s=0.05, correction_gain=0.1, resync_m=6e-5)
+    observer.reset(0.0, 0)
+    observer.correct(1e-4, 0)  # one far reading: noise, perhaps; the usual gain
+    assert observer.rod_m == pytest.approx(1e-5)
+    observer.correct(-1e-4, 0)  # far, but on the other side: still the usual gain
+    assert observer.rod_m == pytest.approx(1e-5 - 0.1 * 1.1e-4)
+    observer.correct(-1e-4, 0)  # the second in a row on one side: the rod has moved
+    assert observer.rod_m == pytest.approx(-1e-4)
+    observer.correct(-1e-4 + 3e-5, 0)  # back within the band: the usual gain again
+    assert observer.rod_m == pytest.approx(-1e-4 + 3e-6)
+
+
 @pytest.mark.parametrize('backlash_m, lag_s, correction_gain', [
     (-1e-5, 0.05, 0.1),
     (1e-4, 0.0, 0.1),

@@ -161,7 +161,8 @@ class ActuatorLoop(Node):
         observer_gain = self._double('observer_gain')
         # With the observer the nut reference crosses the backlash itself: no pulse then.
         self.observer = None if observer_gain == 0.0 else NutObserver(
-            self._double('backlash_m'), self._double('observer_lag_s'), observer_gain)
+            self._double('backlash_m'), self._double('observer_lag_s'), observer_gain,
+            resync_m=self._double('observer_resync_m'))
         self._observer_stale = True
         self._observer_reading_time_s = None
         self._observer_time_ns = 0
@@ -280,6 +281,10 @@ class ActuatorLoop(Node):
         self.declare_parameter('observer_lag_s', 0.05, float_descriptor(
             "the nut observer's time constant (s) of the drive's velocity response (the "
             "backlash measurement's fit reports it as 'lag')", 0.001, 1.0, read_only=True))
+        self.declare_parameter('observer_resync_m', 0.0, float_descriptor(
+            'innovation (m) beyond which two readings in a row on one side set the nut '
+            "observer's estimate to the reading (after a stall); 0: never. Several times "
+            'the pot noise', 0.0, 0.01, read_only=True))
         self.declare_parameter('backlash_take_up_s', 0.02, float_descriptor(
             'duration (s) of that pulse', 0.002, 0.5, read_only=True))
         self.declare_parameter('adapt_backlash', False, typed_descriptor(
