@@ -95,6 +95,7 @@ _MAX_READING_AGE_NS = 1_000_000_000
 # as bad as no observer, 0.7x within 10 % of the true band), and a run's fit scatters
 # by up to 15 % (test_backlash).
 _OBSERVER_BAND_FRACTION = 0.8
+
 # GIL hand-over interval (s) in the node's process: a loop thread waking up waits at most
 # this long for the executor thread to let go (Python's default is 5 ms).
 _SWITCH_INTERVAL_S = 0.0002
@@ -121,6 +122,11 @@ class Mode(enum.Enum):
 _OK = DiagnosticStatus.OK
 _WARN = DiagnosticStatus.WARN
 _ERROR = DiagnosticStatus.ERROR
+
+
+def _reading_age_ns(client: DriveClient) -> int:
+    """Return the age (ns) of the latest position reading, by its CAN frame's time."""
+    return time.time_ns() - int(client.position_time_s * _NS_PER_S)
 
 
 class ActuatorLoop(Node):
@@ -290,8 +296,9 @@ class ActuatorLoop(Node):
         self.declare_parameter('adapt_backlash', False, typed_descriptor(
             ParameterType.PARAMETER_BOOL,
             'after each run (when its setpoints stop), set the take-up to the backlash '
-            'measured on the last runs (the mean of up to 5). The measurement is made and '
-            'reported on /diagnostics either way; backlash_m is the value until then',
+            'measured on the last runs (the mean of up to 5; with the nut observer, its band '
+            'to 0.8 of that). The measurement is made and reported on /diagnostics either '
+            'way; backlash_m is the value until then',
             read_only=True))
         self.declare_parameter('velocity_feedforward', 1.0, float_descriptor(
             'fraction of the setpoint velocity fed forward; may change live', 0.0, 1.0))
@@ -534,9 +541,8 @@ class ActuatorLoop(Node):
             self._observe(observer, client, measured_m, now_ns)
         if hold.stamp_ns is None:
             setpoint_m, setpoint_velocity_m_s = measured_m, 0.0
-            if observer is not None:
-                observer.reset(measured_m, now_ns)
-                self._observer_time_ns = now_ns
+            # No setpoint yet: the observer starts afresh from the first one.
+            self._observer_stale = True
         elif observer is not None:
             # The estimate is of now, so it meets the setpoint of now.
             setpoint_velocity_m_s = hold.velocity(now_ns)
@@ -544,9 +550,7 @@ class ActuatorLoop(Node):
         else:
             setpoint_velocity_m_s = hold.velocity(now_ns)
             if self._compensate_reading_age:
-                # The reading is a CAN round trip old; its frame time says how old.
-                reading_age_ns = time.time_ns() - int(client.position_time_s * _NS_PER_S)
-                setpoint_m = hold.position_for_reading(now_ns, reading_age_ns,
+                setpoint_m = hold.position_for_reading(now_ns, _reading_age_ns(client),
                                                        _MAX_READING_AGE_NS)
             else:
                 setpoint_m = hold.position(now_ns)
@@ -612,9 +616,8 @@ class ActuatorLoop(Node):
         self._observer_time_ns = now_ns
         if client.position_time_s != self._observer_reading_time_s:
             self._observer_reading_time_s = client.position_time_s
-            # The reading is a CAN round trip old; its frame time says how old.
-            age_ns = time.time_ns() - int(client.position_time_s * _NS_PER_S)
-            observer.correct(measured_m, now_ns - min(max(age_ns, 0), _MAX_READING_AGE_NS))
+            age_ns = min(max(_reading_age_ns(client), 0), _MAX_READING_AGE_NS)
+            observer.correct(measured_m, now_ns - age_ns)
 
     def _measure_backlash(self) -> None:
         """Measure the run's backlash off the loop thread (lock held); the run has ended."""
@@ -639,12 +642,17 @@ class ActuatorLoop(Node):
                 self.backlash.backlash_m = take_up_m
                 if self.observer is not None:
                     self.observer.backlash_m = _OBSERVER_BAND_FRACTION * take_up_m
+        if not self.adapt_backlash:
+            applied = ' (adapt_backlash off)'
+        elif self.observer is None:
+            applied = '; take-up set to it'
+        else:
+            applied = f'; nut observer band set to {_OBSERVER_BAND_FRACTION} of it'
         self.get_logger().info(
             f'backlash measured: {estimate.backlash_m * 1e3:.3f} mm at {estimate.reversals} '
             f'reversal(s) (drive lag {estimate.lag_s:.3f} s, residual '
             f'{estimate.residual_rms_m * 1e6:.1f} um); mean of the last runs '
-            f'{take_up_m * 1e3:.3f} mm'
-            + ('; take-up set to it' if self.adapt_backlash else ' (adapt_backlash off)'))
+            f'{take_up_m * 1e3:.3f} mm{applied}')
         self._notify_diagnostics()
 
     def _publish_state(self, measured_m: float, commanded_m_s: float) -> None:
