@@ -285,10 +285,6 @@ class SimulatedDrive:
         self._lock = threading.RLock()
         self._closed = False
         self._now_s: Optional[float] = None
-        # Set by tick(): where the physics stands within the step, and the system clock's
-        # offset from the tick clock (None when tick() was given no wall time).
-        self._event_s: Optional[float] = None
-        self._wall_offset_s: Optional[float] = None
         self._next_heartbeat_s: Optional[float] = None
         self._next_tpdo_s: Optional[float] = None
         self._last_rpdo_s: Optional[float] = None
@@ -328,42 +324,26 @@ class SimulatedDrive:
 
     # Driving the simulation -------------------------------------------------------------
 
-    def tick(self, now_s: float, dt_s: float, wall_time_s: Optional[float] = None) -> None:
+    def tick(self, now_s: float, dt_s: float) -> None:
         """
         Advance the drive to time ``now_s`` (s, any monotonic clock) by a step ``dt_s`` (s).
 
         Handles the frames received since the last tick (without blocking), checks the
         RPDO watchdog, steps the physics with the resulting velocity command and sends
         the heartbeat and event-timer TPDO when due. Does nothing after shutdown.
-
-        :param wall_time_s: the system clock (s, ``time.time()``) at ``now_s``. Given, each
-            frame takes effect at the instant it was sent (its timestamp, system clock)
-            rather than at the step's start: the physics advances to that instant first,
-            and a TPDO that answers it reports the rod there and carries that instant as
-            its timestamp. A step that comes late, because this machine starved the
-            simulator, then moves the rod as a drive that is never late would have.
         """
         with self._lock:
             if self._closed:
                 return
             self._now_s = now_s
-            cursor_s = now_s - dt_s
-            self._wall_offset_s = None if wall_time_s is None else wall_time_s - now_s
             for _ in range(_MAX_FRAMES_PER_TICK):
                 message = self._bus.recv(timeout=0.0)
                 if message is None:
                     break
-                if wall_time_s is not None:
-                    sent_s = min(max(message.timestamp - self._wall_offset_s, cursor_s), now_s)
-                    self._step_physics(sent_s - cursor_s)
-                    cursor_s = sent_s
-                    self._event_s = cursor_s
-                self._handle(message, cursor_s if wall_time_s is not None else now_s)
+                self._handle(message, now_s)
             self._check_rpdo_timeout(now_s)
-            self._step_physics(now_s - cursor_s)
-            self._event_s = now_s
+            self._step_physics(dt_s)
             self._send_periodic(now_s)
-            self._event_s = None  # frames sent between ticks carry their own send time
 
     def inject_fault(self, error_code: int = cia402.EMCY_GENERIC) -> None:
         """Enter FAULT (velocity command 0) and send an EMCY with ``error_code``."""
@@ -603,14 +583,9 @@ class SimulatedDrive:
         self._send(self._sdo_response_id, cia402.encode_sdo(sdo))
 
     def _send(self, cob_id: int, data: bytes) -> None:
-        # The instant the frame describes, on the system clock: a bus that preserves
-        # timestamps passes it on (the simulated rig's); any other stamps its own time.
-        if self._event_s is None or self._wall_offset_s is None:
-            timestamp = time.time()
-        else:
-            timestamp = self._event_s + self._wall_offset_s
+        # Stamped with its send time (system clock), whether or not the bus keeps stamps.
         try:
-            self._bus.send(can.Message(timestamp=timestamp, arbitration_id=cob_id, data=data,
+            self._bus.send(can.Message(timestamp=time.time(), arbitration_id=cob_id, data=data,
                                        is_extended_id=False))
         except can.CanError as error:
             _log.warning('node %d: could not send 0x%03X: %s', self.node_id, cob_id, error)

@@ -212,10 +212,6 @@ class SimulatedRig:
 
     def step_physics(self, now_s: float, dt_s: float) -> None:
         """Advance both drives by ``dt_s`` (s) to ``now_s`` (s, monotonic clock): one step."""
-        # The drives are not given the wall time (SimulatedDrive.tick). It was turned off
-        # when the characterisation of the simulated rig got worse with it (theta 0.12-2.3
-        # mrad against 0.11-0.23 mrad); the same failure then came without it, from the
-        # screw-velocity extrapolation fixed in _rod_snapshot. Not tried again since.
         rods_before_m = tuple(a.rod_position_m for a in self.actuators)
         for drive in self.drives:
             drive.tick(now_s, dt_s)
