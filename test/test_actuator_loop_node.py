@@ -13,15 +13,19 @@ import time
 from typing import Callable, Iterator, List, Optional, Tuple
 import uuid
 
+from builtin_interfaces.msg import Duration
 import can
 from conftest import TickedDrive
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState
+from flexure_ctrl.core.run import Following, LoopStatus, RunMessage, RunState
+from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.actuator_loop import ActuatorLoop, ActuatorLoopConfigError
 from flexure_ctrl.nodes.actuator_loop import DriveConnectError, Mode
 from flexure_ctrl.nodes.common import actuator_state_topic, DIAGNOSTICS_TOPIC
 from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
+import numpy as np
 import pytest
 import rclpy
 from rclpy.exceptions import InvalidParameterValueException
@@ -30,6 +34,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 NODE_ID = 9
 ACTUATOR = 'actuator_1'
@@ -65,6 +70,16 @@ class Harness:
         self.helper.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                         self._on_diagnostics, 100)
         self.helper.create_timer(0.01, self._publish_setpoint)  # the 100 Hz demand rate
+        self.statuses: List[LoopStatus] = []
+        self.helper.create_subscription(
+            DiagnosticStatus, common.actuator_status_topic(ACTUATOR),
+            lambda m: self.statuses.append(LoopStatus.from_pairs(
+                (kv.key, kv.value) for kv in m.values)), common.latched_qos())
+        self.trajectory_publisher = self.helper.create_publisher(
+            JointTrajectory, common.TRAJECTORY_TOPIC, common.latched_qos())
+        self.run_publisher = self.helper.create_publisher(DiagnosticStatus, common.RUN_TOPIC, 10)
+        self.run: Optional[RunMessage] = None  # said every 50 ms while set
+        self.helper.create_timer(0.05, self._say_run)
         self.reset_client = self.helper.create_client(Trigger, f'/{ACTUATOR}/reset')
         self.quick_stop_client = self.helper.create_client(Trigger, f'/{ACTUATOR}/quick_stop')
 
@@ -96,6 +111,25 @@ class Harness:
         message.velocity = [0.0, velocity_m_s]
         self.publisher.publish(message)
         self.last_setpoint_wall_s = time.time()
+
+    def _say_run(self) -> None:
+        if self.run is not None:
+            self.run_publisher.publish(DiagnosticStatus(
+                name=common.RUN_STATUS_NAME,
+                values=[KeyValue(key=k, value=v) for k, v in self.run.to_pairs()]))
+
+    def publish_plan(self, times_s, positions_m, velocities_m_s, lead_in_s: float) -> int:
+        """Publish a one-joint plan due ``lead_in_s`` from now; return its stamp (ns)."""
+        stamp_ns = time.time_ns() + int(lead_in_s * 1e9)
+        message = JointTrajectory(joint_names=[ACTUATOR])
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+        for t_s, position, velocity in zip(times_s, positions_m, velocities_m_s):
+            sec, nanosec = divmod(int(round(t_s * 1e9)), 10**9)
+            message.points.append(JointTrajectoryPoint(
+                positions=[position], velocities=[velocity],
+                time_from_start=Duration(sec=sec, nanosec=nanosec)))
+        self.trajectory_publisher.publish(message)
+        return stamp_ns
 
     def drain_sniffer(self) -> None:
         message = self.sniffer.recv(0.0)
@@ -223,7 +257,7 @@ def test_follows_setpoints_and_publishes_state(running, rig):
     median_ms = float(values['loop period median (ms)'])
     p99_ms = float(values['loop period p99 (ms)'])
     assert math.isfinite(median_ms) and math.isfinite(p99_ms)
-    median, p99 = running.node.loop_period_stats_ms()
+    median, p99 = running.node.thread.period_stats_ms()
     print(f'\nloop period at 500 Hz in-process: median {median:.3f} ms, p99 {p99:.3f} ms')
 
 
@@ -232,9 +266,10 @@ def test_setpoints_that_arrive_stale_never_move_the_drive(running, rig):
     # Stamped 2 s ago, as if delivered late: older than this fixture's 1 s watchdog.
     harness.stamp_age_s = 2.0
     harness.follow(lambda t: (0.005, 0.0))
-    harness.spin_until(lambda: harness.node.setpoints_stale > 20, 4.0, 'stale setpoints')
+    harness.spin_until(lambda: harness.node.controller.stream_stale > 20, 4.0,
+                       'stale setpoints')
     assert abs(rig.actuator.rod_position_m) < 2e-4  # backlash and noise, no motion
-    assert harness.node.setpoints_received == 0
+    assert harness.node.controller.following is Following.IDLE
     harness.stamp_age_s = 0.0
     harness.spin_until(lambda: abs(rig.actuator.rod_position_m - 0.005) < 1e-4, 4.0,
                        'fresh setpoints followed')
@@ -284,8 +319,9 @@ def test_watchdog_ramps_to_zero_when_setpoints_stop_and_resumes(running, rig):
                        'moving at ~10 mm/s')
     harness.follow(None)
     # The node's own clock of its last setpoint, on the wall clock of the sniffed frames.
-    harness.spin_until(lambda: node.watchdog.expired, 2.0, 'watchdog expired')
-    last_setpoint_s = time.time() - (time.monotonic_ns() - node.hold.stamp_ns) / 1e9
+    harness.spin_until(lambda: node.controller.following is Following.STOPPING, 2.0,
+                       'watchdog expired')
+    last_setpoint_s = node.controller.hold.stamp_ns / 1e9
     harness.spin_until(lambda: harness.rpdos[-1][2] == 0, 2.0, 'zero velocity command')
     zero_at_s = next(t for t, _, v in harness.rpdos if t > last_setpoint_s and v == 0)
     ramp_s = 0.01 / WATCHDOG_DECEL_M_S2
@@ -376,6 +412,10 @@ def test_safe_stop_leaves_the_drive_disabled_at_zero_velocity(running, rig):
         (Controlword.ENABLE_OPERATION, 0), (Controlword.DISABLE_VOLTAGE, 0)]
     harness.node.safe_stop()  # idempotent
     assert harness.node.mode is Mode.STOPPED
+    # The last word on the state topic: commanded nothing.
+    harness.spin_for(0.1)
+    assert harness.states[-2].velocity[0] > 0.0  # it was moving
+    assert harness.states[-1].velocity[0] == 0.0
 
 
 def test_connects_to_a_drive_that_appears_later(harness, channel):
@@ -398,18 +438,97 @@ def test_gives_up_after_connect_timeout(harness):
         harness.spin_for(3.0)
 
 
-@pytest.mark.parametrize('watchdog_args', [('-p', 'observer_gain:=0.1',
-                                            '-p', 'backlash_m:=0.0001')])
-def test_with_the_nut_observer_it_follows_a_reversing_setpoint(running, rig):
+def ramp_plan(start_m: float, end_m: float, duration_s: float):
+    times = np.linspace(0.0, duration_s, 21)
+    speed = (end_m - start_m) / duration_s
+    return times, start_m + speed * times, np.full(times.shape, speed)
+
+
+def start_run(harness: Harness, plan, lead_in_s: float) -> int:
+    stamp_ns = harness.publish_plan(*plan, lead_in_s=lead_in_s)
+    harness.spin_until(lambda: harness.statuses and
+                       harness.statuses[-1].trajectory_stamp_ns == stamp_ns, 2.0,
+                       'plan held')
+    harness.run = RunMessage(RunState.RUNNING, stamp_ns)
+    return stamp_ns
+
+
+def test_a_run_follows_its_trajectory_by_the_clock_and_ignores_the_jog_stream(running, rig):
     harness = running
-    assert harness.node.observer is not None
-    # Out 4 mm and back to 2 mm: a reversal, which the observer's nut reference crosses.
-    harness.follow(lambda t: (0.01 * (min(t, 0.4) - min(max(t - 0.4, 0.0), 0.2)),
-                              0.01 if t < 0.4 else (-0.01 if t < 0.6 else 0.0)))
-    harness.spin_for(0.7)  # the setpoint has passed 2 mm on its way out; now it holds there
-    harness.spin_until(lambda: abs(rig.actuator.rod_position_m - 0.002) < 5e-5, 4.0,
-                       'rod settled at 2 mm after the reversal')
+    harness.follow(lambda t: (-0.01, 0.0))  # a jog stream that must lose to the run
+    harness.spin_until(lambda: rig.actuator.rod_position_m < -0.002, 2.0, 'jogging')
+    stamp_ns = start_run(harness, ramp_plan(0.0, 0.006, 1.0), lead_in_s=0.8)
+    harness.spin_until(lambda: harness.statuses[-1].following is Following.RUN, 1.0, 'run')
+    # Mid-path the rod is on the plan of its time (1 mm of lag at most at 6 mm/s).
+    harness.spin_until(lambda: time.time_ns() > stamp_ns + 500_000_000, 3.0, 'mid-path')
+    path_s = (time.time_ns() - stamp_ns) / 1e9
+    assert rig.actuator.rod_position_m == pytest.approx(0.006 * path_s, abs=1e-3)
+    # After the last point the last is held, whatever the jog stream says.
+    harness.spin_until(lambda: time.time_ns() > stamp_ns + 1_500_000_000, 3.0, 'path end')
+    assert rig.actuator.rod_position_m == pytest.approx(0.006, abs=1e-4)
+    assert harness.node.controller.stream_ignored > 50
+    assert harness.node.controller.max_deviation_m < 1e-3
+    assert harness.statuses[-1].problem == ''
+
+
+def test_a_silent_run_owner_stops_the_loop_within_its_watchdog(running, rig):
+    harness = running
+    stamp_ns = start_run(harness, ramp_plan(0.0, 0.03, 3.0), lead_in_s=0.2)
+    harness.spin_until(lambda: time.time_ns() > stamp_ns + 500_000_000, 2.0, 'moving')
+    harness.run = None  # the owner hangs
+    silent_from_s = time.time()
+    harness.spin_until(lambda: harness.statuses[-1].problem, 2.0, 'problem reported')
+    assert 'run owner' in harness.statuses[-1].problem
+    harness.spin_until(lambda: harness.rpdos and harness.rpdos[-1][2] == 0, 1.0, 'zero')
+    zero_at_s = next(t for t, _, v in harness.rpdos if t > silent_from_s and v == 0)
+    # Its last word came up to 50 ms before; then the timeout and a 10 mm/s ramp.
+    assert zero_at_s - silent_from_s < 1.0 + 0.01 / WATCHDOG_DECEL_M_S2 + 0.05
+    assert zero_at_s - silent_from_s > 1.0 - 0.06
+
+
+def test_a_reading_beyond_the_path_tolerance_stops_the_run_and_is_reported(running, rig):
+    harness = running
+    # 20 mm away with 0.2 s of lead-in at 20 mm/s: 16 mm short at path time zero.
+    start_run(harness, ramp_plan(0.02, 0.02, 1.0), lead_in_s=0.2)
+    harness.spin_until(lambda: harness.statuses[-1].problem, 2.0, 'problem reported')
+    problem = harness.statuses[-1].problem
+    assert problem.startswith('path tolerance:') and 'tolerance 2.000 mm' in problem
+    assert harness.statuses[-1].following is Following.STOPPING
+    harness.spin_until(lambda: harness.rpdos and harness.rpdos[-1][2] == 0, 1.0, 'zero')
+    harness.spin_for(0.2)
+    assert abs(rig.actuator.velocity_m_s) < 1e-4
+    assert rig.actuator.rod_position_m < 0.01
+
+
+def test_a_bad_trajectory_is_refused_whole_and_nothing_moves(running, rig):
+    harness = running
+    times, positions, velocities = ramp_plan(0.0, 0.03, 1.0)
+    positions[15] = 0.05  # one point beyond the 45 mm stroke
+    stamp_ns = harness.publish_plan(times, positions, velocities, lead_in_s=0.2)
+    harness.spin_until(lambda: harness.statuses and 'refused' in harness.statuses[-1].problem,
+                       2.0, 'refusal reported')
+    assert 'point #15' in harness.statuses[-1].problem
+    assert harness.statuses[-1].trajectory_stamp_ns != stamp_ns
+    harness.run = RunMessage(RunState.RUNNING, stamp_ns)
+    harness.spin_for(0.5)
+    assert harness.node.controller.following is Following.IDLE
+    assert abs(rig.actuator.rod_position_m) < 2e-4
+
+
+def test_a_drive_that_stops_answering_is_reported_and_its_position_marked_stale(running, rig):
+    harness = running
+    harness.follow(lambda t: (0.003, 0.0))
+    harness.spin_until(lambda: rig.actuator.rod_position_m > 0.001, 2.0, 'moving')
+    harness.sniffer.send(can.Message(arbitration_id=cia402.NMT_COB_ID, is_extended_id=False,
+                                     data=cia402.encode_nmt(cia402.NmtCommand.STOP, NODE_ID)))
+    harness.spin_until(lambda: running.node.position_stale, 2.0, 'stale')
+    assert running.node.mode is Mode.FAULTED
+    harness.spin_until(lambda: 'stale' in harness.diagnostics[-1].message, 2.0,
+                       'reported on /diagnostics')
+    assert 'does not answer (NMT STOPPED)' in harness.diagnostics[-1].message
+    values = {kv.key: kv.value for kv in harness.diagnostics[-1].values}
+    assert values['position (m)'].endswith('(stale)')
+    # Nothing on the state topic shows the stale position as current.
+    count = len(harness.states)
     harness.spin_for(0.3)
-    assert rig.actuator.rod_position_m == pytest.approx(0.002, abs=5e-5)
-    # The estimate agrees with the simulated rod (noise 20 um per reading, averaged).
-    assert harness.node.observer.rod_m == pytest.approx(rig.actuator.rod_position_m, abs=2e-5)
+    assert len(harness.states) == count

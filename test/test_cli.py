@@ -3,6 +3,7 @@
 import csv
 import io
 import os
+import subprocess
 import sys
 import time
 
@@ -118,8 +119,29 @@ def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_pa
     assert not (tmp_path / 'out').exists()  # refused before the rig or any output
 
 
-def test_demo_refuses_negative_warm_up_runs_before_starting_anything(tmp_path, capsys):
-    status = main(['demo', '--warm-up-runs', '-1', '--out', str(tmp_path / 'out')])
-    assert status != 0
-    assert '--warm-up-runs must be 0 or more' in capsys.readouterr().err
-    assert not (tmp_path / 'out').exists()
+@pytest.mark.parametrize('command', [['up', '--design', 'cfa', '--sim'], ['demo']],
+                         ids=['up', 'demo'])
+@pytest.mark.parametrize('period', ['0', '-5', 'nan', 'inf'])
+def test_a_period_not_above_zero_is_refused_before_any_process_starts(
+        tmp_path, command, period):
+    # `up` once took --period 0 as not given and ran the default path; demo passes its
+    # --period on to `up`. Both refuse it by name, in one line, and start nothing.
+    out = tmp_path / 'out'
+    extra = ['--out', str(out), '--bag-dir', str(tmp_path / 'bags')] if command == ['demo'] \
+        else []
+    started = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, '-m', 'flexure_ctrl.cli.main', *command, '--period', period, *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=60,
+        env=os.environ)
+    elapsed_s = time.monotonic() - started
+    assert result.returncode != 0
+    assert result.stdout == ''
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith(f'flexure-ctrl {command[0]}: ')
+    assert '--period must be > 0 s' in lines[0]
+    assert 'Traceback' not in result.stderr
+    assert '[up] started' not in result.stdout + result.stderr
+    assert elapsed_s < 10.0  # no rig, no nodes: just the interpreter and the imports
+    assert not out.exists() and not (tmp_path / 'bags').exists()

@@ -1,15 +1,19 @@
-"""Tests of the actuator P-loop law, its limits, the setpoint watchdog and the hold."""
+"""Tests of the actuator P-loop law and of the per-cycle controller, in simulated time."""
 
 import math
 
-from flexure_ctrl.core.ploop import BacklashTakeUp, FirstOrderHold, LoopConfigError, LoopLimits
-from flexure_ctrl.core.ploop import ProportionalLoop, SetpointWatchdog
+from flexure_ctrl.core.ploop import ActuatorController, LoopConfigError, LoopLimits
+from flexure_ctrl.core.ploop import ProportionalLoop
+from flexure_ctrl.core.run import Following, JointSampler, RunMessage, RunState
 import numpy as np
 import pytest
 
 STROKE_M = 0.045
 LIMITS = LoopLimits(max_speed_m_s=0.02, stroke_limit_m=STROKE_M, max_accel_m_s2=1.0)
 MS = 1_000_000  # ns per ms
+S = 1_000_000_000  # ns per s
+TIMEOUT_S = 0.1
+TOLERANCE_M = 0.002
 
 
 @pytest.mark.parametrize('gain, ff, sp, spv, measured', [
@@ -76,56 +80,6 @@ def test_gains_change_live_and_are_validated():
         loop.gain_per_s = -1.0
     with pytest.raises(LoopConfigError):
         LoopLimits(max_speed_m_s=0.0, stroke_limit_m=0.04)
-    with pytest.raises(LoopConfigError):
-        SetpointWatchdog(0.0, 1.0)
-
-
-def test_watchdog_passes_fresh_commands_then_ramps_at_decel_and_holds():
-    decel = 0.5
-    dt_s = 0.002
-    watchdog = SetpointWatchdog(timeout_s=0.1, decel_m_s2=decel)
-    # Never fed: expired from the start, holds zero.
-    assert watchdog.limit(0.01, 0, dt_s) == 0.0 and watchdog.expired
-    watchdog.feed(0)
-    now = 0
-    for _ in range(50):
-        now += 2 * MS
-        assert watchdog.limit(0.01, now, dt_s) == 0.01
-    assert not watchdog.expired
-    # Last feed at 0; at 102 ms the setpoint is stale.
-    outputs = []
-    while now < 200 * MS:
-        now += 2 * MS
-        outputs.append(watchdog.limit(0.01, now, dt_s))
-    assert watchdog.expired
-    steps = [a - b for a, b in zip([0.01] + outputs, outputs)]
-    ramp = [step for step, out in zip(steps, outputs) if out > 0.0]
-    assert ramp and all(step == pytest.approx(decel * dt_s) for step in ramp)
-    # 0.01 m/s at 0.5 m/s^2 is 20 ms = 10 cycles, then exactly zero, held.
-    assert len(ramp) == 9 and outputs[9:] == [0.0] * (len(outputs) - 9)
-    # Negative commands ramp up towards zero symmetrically.
-    watchdog.feed(now)
-    watchdog.limit(-0.004, now, dt_s)
-    assert watchdog.limit(-0.004, now + 101 * MS, dt_s) == pytest.approx(-0.004 + decel * dt_s)
-    # Resumes on feed.
-    watchdog.feed(now + 150 * MS)
-    assert watchdog.limit(0.007, now + 151 * MS, dt_s) == 0.007
-    assert not watchdog.expired
-    assert watchdog.setpoint_age_s(now + 151 * MS) == pytest.approx(0.001)
-
-
-def test_first_order_hold_extrapolates_with_capped_age():
-    hold = FirstOrderHold(max_age_s=0.02)
-    assert not hold.has_setpoint and hold.position(0) == 0.0 and hold.velocity(0) == 0.0
-    hold.update(0.010, 0.005, 1_000 * MS)
-    assert hold.position(1_000 * MS) == pytest.approx(0.010)
-    assert hold.position(1_004 * MS) == pytest.approx(0.010 + 0.005 * 0.004)
-    assert hold.velocity(1_004 * MS) == 0.005
-    # Capped at 20 ms: no runaway, and the feedforward velocity drops to zero.
-    assert hold.position(1_500 * MS) == pytest.approx(0.010 + 0.005 * 0.020)
-    assert hold.velocity(1_500 * MS) == 0.0
-    # A stamp in the future (clock skew) does not extrapolate backwards.
-    assert hold.position(999 * MS) == pytest.approx(0.010)
 
 
 def test_closed_loop_step_response_has_time_constant_one_over_gain():
@@ -153,32 +107,163 @@ def test_closed_loop_step_response_has_time_constant_one_over_gain():
     assert abs(position_m - step_m) < 1e-6
 
 
-def test_hold_gives_the_setpoint_of_an_earlier_time_along_its_line():
-    hold = FirstOrderHold(max_age_s=0.05)
-    hold.update(0.010, 0.005, 1_000 * MS)
-    assert hold.position_at(990 * MS) == pytest.approx(0.010 - 0.005 * 0.010)
-    assert hold.position_at(1_004 * MS) == pytest.approx(hold.position(1_004 * MS))
-    # Capped both ways.
-    assert hold.position_at(0) == pytest.approx(0.010 - 0.005 * 0.05)
-    assert hold.position_at(2_000 * MS) == pytest.approx(0.010 + 0.005 * 0.05)
-    # A reading's setpoint is that of its own time, unless its age is unknown or implausible.
-    assert hold.position_for_reading(1_004 * MS, 14 * MS, 1_000 * MS) == \
-        pytest.approx(hold.position_at(990 * MS))
-    for age_ns in (0, -5 * MS, 1_000 * MS):
-        assert hold.position_for_reading(1_004 * MS, age_ns, 1_000 * MS) == \
-            pytest.approx(hold.position(1_004 * MS))
+def controller(gain=20.0, feedforward=1.0, hold_s=0.05, compensate=True):
+    return ActuatorController(ProportionalLoop(gain, feedforward, LIMITS), TIMEOUT_S, hold_s,
+                              TOLERANCE_M, compensate_reading_age=compensate)
 
 
-def _track_a_sine(seed: int, compare_with_reading_time: bool) -> np.ndarray:
+def ramp_sampler(start_m=0.01, speed_m_s=0.005, duration_s=2.0):
+    """Return a straight ramp, start + speed t over [0, duration], in 11 points."""
+    times = np.linspace(0.0, duration_s, 11)
+    return JointSampler(times, start_m + speed_m_s * times, np.full(11, speed_m_s))
+
+
+def running(stamp_ns):
+    return RunMessage(RunState.RUNNING, stamp_ns)
+
+
+def test_a_run_is_sampled_by_the_clock_with_lead_in_and_hold_at_the_end():
+    ctrl = controller(gain=10.0)
+    start_ns = 10 * S
+    ctrl.load_trajectory(ramp_sampler(), start_ns)
+    # Loaded but not running: nothing moves.
+    assert ctrl.step(9 * S, 0.0) == 0.0 and ctrl.following is Following.IDLE
+    ctrl.on_run_message(running(start_ns), 9 * S)
+    assert ctrl.following is Following.RUN
+    # Lead-in: the first point, held, no feedforward.
+    assert ctrl.step(9 * S + 2 * MS, 0.009) == pytest.approx(10.0 * 0.001)
+    # Path time 1 s: on the ramp, with its velocity fed forward (closed form).
+    ctrl.on_run_message(running(start_ns), 11 * S)
+    assert ctrl.step(11 * S, 0.0149) == pytest.approx(10.0 * (0.015 - 0.0149) + 0.005)
+    # After the last point the last is held, velocity zero.
+    ctrl.on_run_message(running(start_ns), 12 * S + 400 * MS)
+    assert ctrl.step(12 * S + 500 * MS, 0.0201) == pytest.approx(10.0 * (0.02 - 0.0201))
+    assert ctrl.following is Following.RUN and ctrl.problem == ''
+
+
+def test_a_reading_is_compared_with_the_plan_of_its_own_time():
+    ctrl = controller(gain=10.0)
+    ctrl.load_trajectory(ramp_sampler(), 0)
+    ctrl.on_run_message(running(0), 1 * S)
+    # The reading is 20 ms old: the plan then was 0.1 um lower than now.
+    command = ctrl.step(1 * S, 0.0149, reading_age_ns=20 * MS)
+    assert ctrl.setpoint_m == pytest.approx(0.015 - 0.005 * 0.020)
+    assert command == pytest.approx(10.0 * (0.015 - 0.0001 - 0.0149) + 0.005)
+    # Off: the plan of now.
+    plain = controller(gain=10.0, compensate=False)
+    plain.load_trajectory(ramp_sampler(), 0)
+    plain.on_run_message(running(0), 1 * S)
+    assert plain.step(1 * S, 0.0149, reading_age_ns=20 * MS) == \
+        pytest.approx(10.0 * (0.015 - 0.0149) + 0.005)
+
+
+def test_the_jog_stream_is_ignored_during_a_run_and_followed_outside_one():
+    ctrl = controller(gain=10.0)
+    assert ctrl.on_stream_setpoint(0.004, 0.0, 0, 0)
+    assert ctrl.step(1 * MS, 0.003) == pytest.approx(10.0 * 0.001)
+    ctrl.load_trajectory(ramp_sampler(), 1 * S)
+    ctrl.on_run_message(running(1 * S), 2 * MS)
+    assert not ctrl.on_stream_setpoint(-0.03, 0.0, 3 * MS, 3 * MS)
+    assert ctrl.stream_ignored == 1
+    # The run's first point, not the jog setpoint.
+    assert ctrl.step(4 * MS, 0.009) == pytest.approx(10.0 * (0.01 - 0.009))
+
+
+def _assert_ramps_to_zero(outputs, start_m_s, decel=1.0, dt_s=0.002):
+    previous = start_m_s
+    for output in outputs:
+        assert abs(output) <= abs(previous)
+        assert abs(previous - output) <= decel * dt_s + 1e-12
+        previous = output
+    assert outputs[-1] == 0.0
+
+
+def test_a_stale_stream_ramps_to_zero_at_the_deceleration_and_fresh_setpoints_resume():
+    ctrl = controller(gain=0.0, feedforward=1.0, hold_s=1.0)
+    ctrl.on_stream_setpoint(0.0, 0.01, 0, 0)
+    assert ctrl.step(2 * MS, 0.0) == 0.01
+    outputs = [ctrl.step(now, 0.0) for now in range(4 * MS, 200 * MS, 2 * MS)]
+    moving = [v for v in outputs if v == 0.01]
+    # Followed while fresh (<= 100 ms), then exactly 1 m/s^2 down: 0.01 m/s in 10 ms.
+    assert len(moving) == 49
+    ramp = outputs[len(moving):]
+    assert ramp[:5] == pytest.approx([0.008, 0.006, 0.004, 0.002, 0.0])
+    assert set(ramp[5:]) == {0.0} and ctrl.following is Following.STOPPING
+    assert ctrl.problem == ''  # a quiet stream is no problem
+    # Made too long ago: never moves the actuator; fresh: followed again.
+    assert not ctrl.on_stream_setpoint(0.0, 0.01, 0, 200 * MS)
+    assert ctrl.on_stream_setpoint(0.0, 0.01, 200 * MS, 200 * MS)
+    assert ctrl.step(202 * MS, 0.0) == 0.01
+
+
+def test_a_silent_run_owner_stops_the_run_within_the_watchdog_time():
+    ctrl = controller(gain=0.0, feedforward=1.0)
+    ctrl.load_trajectory(ramp_sampler(start_m=0.0, speed_m_s=0.01), 0)
+    ctrl.on_run_message(running(0), 0)
+    outputs = [ctrl.step(now, 0.0) for now in range(2 * MS, 300 * MS, 2 * MS)]
+    assert outputs[0] == pytest.approx(0.01)
+    moving = [v for v in outputs if v == pytest.approx(0.01)]
+    assert len(moving) == 50  # up to 100 ms after the last word
+    assert 'run owner' in ctrl.problem and ctrl.following is Following.STOPPING
+    _assert_ramps_to_zero(outputs[50:], 0.01)
+
+
+@pytest.mark.parametrize('state', [RunState.STOPPED, RunState.ABORTED, RunState.FINISHED])
+def test_the_end_of_a_run_ramps_to_zero_and_holds(state):
+    ctrl = controller(gain=0.0, feedforward=1.0)
+    ctrl.load_trajectory(ramp_sampler(start_m=0.0, speed_m_s=0.01), 0)
+    ctrl.on_run_message(running(0), 0)
+    assert ctrl.step(10 * MS, 0.0) == pytest.approx(0.01)
+    ctrl.on_run_message(RunMessage(state, 0, 'actuator_2: fault'), 12 * MS)
+    assert ctrl.following is Following.STOPPING and ctrl.problem == ''
+    outputs = [ctrl.step(now, 0.0) for now in range(12 * MS, 100 * MS, 2 * MS)]
+    _assert_ramps_to_zero(outputs, 0.01)
+    # The same run is not followed again, even if its word comes back.
+    ctrl.on_run_message(running(0), 100 * MS)
+    assert ctrl.following is Following.STOPPING and ctrl.step(102 * MS, 0.0) == 0.0
+
+
+def test_the_path_tolerance_trips_from_path_time_zero_on_not_during_the_lead_in():
+    ctrl = controller(gain=10.0)
+    ctrl.load_trajectory(ramp_sampler(start_m=0.01), 1 * S)
+    ctrl.on_run_message(running(1 * S), 0)
+    # 10 mm away during the lead-in: no trip, driven towards the first point.
+    ctrl.on_run_message(running(1 * S), 450 * MS)
+    assert ctrl.step(500 * MS, 0.0) == LIMITS.max_speed_m_s
+    ctrl.on_run_message(running(1 * S), 900 * MS)
+    assert ctrl.step(998 * MS, 0.0075) == LIMITS.max_speed_m_s
+    # Still 2.5 mm away at path time zero: the run is stopped and the problem reported.
+    output = ctrl.step(1 * S, 0.0075)
+    assert ctrl.following is Following.STOPPING
+    assert 'path tolerance' in ctrl.problem and '+7.500 mm' in ctrl.problem
+    assert output == pytest.approx(LIMITS.max_speed_m_s - 0.002)  # ramping down
+    # Within tolerance the run goes on: 1.9 mm.
+    ctrl.load_trajectory(ramp_sampler(start_m=0.01), 3 * S)
+    assert ctrl.problem == ''  # a new plan clears the last run's problem
+    ctrl.on_run_message(running(3 * S), 3 * S)
+    ctrl.step(3 * S, 0.0081)
+    assert ctrl.following is Following.RUN
+    assert ctrl.max_deviation_m == pytest.approx(0.0019)
+
+
+def test_the_run_followed_is_only_the_one_loaded():
+    ctrl = controller()
+    ctrl.load_trajectory(ramp_sampler(), 5 * S)
+    ctrl.on_run_message(running(6 * S), 0)  # another run's word
+    assert ctrl.following is Following.IDLE
+    with pytest.raises(LoopConfigError):
+        ActuatorController(ProportionalLoop(1.0, 1.0, LIMITS), 0.1, 0.0, 0.0)
+
+
+def _track_a_sine(seed: int, compensate: bool) -> np.ndarray:
     """
     Rod positions of a loop following a 15 mm/s sine through readings 2-12 ms old.
 
-    Setpoints arrive at 100 Hz and are held first-order; the loop runs at 500 Hz on a
-    screw with a 50 ms velocity lag. The readings' age is random (a CAN round trip).
+    Setpoints arrive at 100 Hz on the jog stream; the loop runs at 500 Hz on a screw with
+    a 50 ms velocity lag. The readings' age is random (a CAN round trip).
     """
     rng = np.random.default_rng(seed)
-    loop = ProportionalLoop(20.0, 1.0, LIMITS)
-    hold = FirstOrderHold(max_age_s=0.05)
+    ctrl = controller(compensate=compensate)
     dt_ns = 2 * MS
     amplitude_m, omega = 0.0335, 2 * math.pi / 14.0  # peak 15 mm/s
     rod_m, velocity_m_s = 0.0, 0.0
@@ -188,15 +273,10 @@ def _track_a_sine(seed: int, compare_with_reading_time: bool) -> np.ndarray:
         now_ns = k * dt_ns
         if k % 5 == 0:
             t_s = now_ns / 1e9
-            hold.update(amplitude_m * math.sin(omega * t_s),
-                        amplitude_m * omega * math.cos(omega * t_s), now_ns)
+            ctrl.on_stream_setpoint(amplitude_m * math.sin(omega * t_s),
+                                    amplitude_m * omega * math.cos(omega * t_s), now_ns, now_ns)
         age_cycles = int(rng.integers(1, 7))
-        reading_m = history[-age_cycles]
-        if compare_with_reading_time:
-            setpoint_m = hold.position_for_reading(now_ns, age_cycles * dt_ns, 1_000 * MS)
-        else:
-            setpoint_m = hold.position(now_ns)
-        command = loop.command(setpoint_m, hold.velocity(now_ns), reading_m)
+        command = ctrl.step(now_ns, history[-age_cycles], age_cycles * dt_ns)
         velocity_m_s += (command - velocity_m_s) * (1.0 - math.exp(-0.002 / 0.05))
         rod_m += velocity_m_s * 0.002
         history = history[1:] + [rod_m]
@@ -211,86 +291,3 @@ def test_comparing_a_reading_with_its_own_times_setpoint_makes_runs_repeat():
     spread_own = np.abs(_track_a_sine(1, True) - _track_a_sine(2, True)).max()
     assert spread_own < 0.25 * spread_now
     assert spread_own < 5e-6
-
-
-def test_backlash_take_up_adds_exactly_the_backlash_on_each_reversal():
-    take_up = BacklashTakeUp(1e-4, take_up_s=0.02)
-    # The first move of a run: the nut's side is unknown, nothing added.
-    assert take_up.velocity(0.005, 0.002) == 0.0
-    rng = np.random.default_rng(3)
-    for direction in (-1.0, 1.0, -1.0):
-        added_m, steps = 0.0, 0
-        for _ in range(100):  # uneven cycles, as a loop thread has them
-            dt_s = float(rng.uniform(0.001, 0.004))
-            velocity_m_s = take_up.velocity(direction * 0.005, dt_s)
-            assert abs(velocity_m_s) <= 1e-4 / 0.02 + 1e-12  # never faster than the pulse
-            steps += velocity_m_s != 0.0
-            added_m += velocity_m_s * dt_s
-        assert added_m == pytest.approx(direction * 1e-4, abs=1e-15)
-        assert 4 <= steps <= 21  # 20 ms of 1-4 ms cycles
-
-
-def test_backlash_take_up_keeps_its_side_through_slow_setpoints_and_can_be_off():
-    take_up = BacklashTakeUp(1e-4, min_speed_m_s=1e-4)
-    take_up.velocity(0.002, 0.002)
-    for speed in (5e-5, -5e-5, 0.0, -9e-5):  # slower than min_speed: no reversal
-        assert take_up.velocity(speed, 0.002) == 0.0
-    assert take_up.velocity(-2e-4, 0.002) < 0.0
-    off = BacklashTakeUp(0.0)
-    assert [off.velocity(v, 0.002) for v in (0.01, -0.01, 0.01)] == [0.0, 0.0, 0.0]
-    with pytest.raises(LoopConfigError, match='take_up_s'):
-        BacklashTakeUp(1e-4, take_up_s=0.0)
-
-
-def test_a_step_the_loop_drives_to_sets_the_nut_side_for_the_next_move():
-    """A run's lead-in: a held first point the loop drives to, then the path."""
-    take_up = BacklashTakeUp(1e-4, take_up_s=0.02)
-    take_up.velocity(0.005, 0.002)          # the last run ended moving outward (+)
-    # The lead-in: the setpoint steps back and holds; the loop drives inward fast.
-    assert take_up.velocity(0.0, 0.002, last_command_m_s=-0.02) == 0.0
-    # The dither of a loop holding still (below push speed) does not move the side.
-    assert take_up.velocity(0.0, 0.002, last_command_m_s=0.001) == 0.0
-    # The path starts outward from there: a reversal of the nut, taken up.
-    added_m = sum(take_up.velocity(0.003, 0.002) * 0.002 for _ in range(20))
-    assert added_m == pytest.approx(1e-4, abs=1e-15)
-    # Without the lead-in's push the same start would not count as a reversal.
-    stale = BacklashTakeUp(1e-4, take_up_s=0.02)
-    stale.velocity(0.005, 0.002)
-    stale.velocity(0.0, 0.002)
-    assert stale.velocity(0.003, 0.002) == 0.0
-    with pytest.raises(LoopConfigError, match='push_speed_m_s'):
-        BacklashTakeUp(1e-4, push_speed_m_s=0.0)
-
-
-def test_backlash_take_up_shrinks_the_rod_error_where_the_setpoint_reverses():
-    from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters
-    parameters = LeadScrewParameters(lag_s=0.05, max_speed_m_s=0.02, backlash_m=1e-4,
-                                     pot_noise_m=0.0, pot_quantum_m=0.0,
-                                     drift_m_per_s=0.0, end_stop_m=0.05)
-
-    def worst_error_after_reversal_m(take_up):
-        # A sine of 12 mm over 14 s (the paper's path at one actuator), from rest at its
-        # top: the rod reverses at 7 s. 500 Hz loop, exact physics in between.
-        amplitude_m, omega = 0.012, 2.0 * math.pi / 14.0
-        actuator = LeadScrewActuator(parameters, np.random.default_rng(0), amplitude_m)
-        loop = ProportionalLoop(20.0, 1.0, LIMITS)
-        worst_m, dt_s = 0.0, 0.002
-        take_up.velocity(-1e-3, dt_s)  # it arrived at the top moving up, then... down
-        take_up.velocity(1e-3, dt_s)
-        for step in range(int(10.0 / dt_s)):
-            t_s = step * dt_s
-            setpoint_m = amplitude_m * math.cos(omega * t_s)
-            velocity_m_s = -amplitude_m * omega * math.sin(omega * t_s)
-            command = loop.command(setpoint_m,
-                                   velocity_m_s + take_up.velocity(velocity_m_s, dt_s),
-                                   actuator.rod_position_m)
-            actuator.step(command, dt_s)
-            if t_s > 6.5:
-                worst_m = max(worst_m, abs(amplitude_m * math.cos(omega * (t_s + dt_s))
-                                           - actuator.rod_position_m))
-        return worst_m
-
-    without_m = worst_error_after_reversal_m(BacklashTakeUp(0.0))
-    with_m = worst_error_after_reversal_m(BacklashTakeUp(1e-4))
-    assert without_m > 3e-5  # the backlash shows: a good part of the 0.1 mm band
-    assert with_m < 0.5 * without_m

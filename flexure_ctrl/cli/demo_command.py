@@ -6,12 +6,8 @@ each iteration: records a run of the path to a bag (the ``recorder`` node), comp
 run's error against the demand (Eq. 7) and the next command path
 (``c_{k+1} = c_k + gamma Q(p - e_k)``; the first is the paper's Eq. 8), and hands it to
 ``trajectory_generator`` for the next run. Iteration 0 is the original run; ``N``
-iterations are ``N`` corrections. Before iteration 0 may come ``--warm-up-runs`` runs of
-the uncorrected path, recorded but neither learned from nor tabled: in them the actuator
-loops measure the lead screws' backlash (taken up from then on where ``adapt_backlash``
-is on), so that every run the table compares has the same loops. At the end it prints
-the paper's Table 1 for the design and writes ``summary.json`` and plots like Figs.
-13/16 and 17.
+iterations are ``N`` corrections. At the end it prints the paper's Table 1 for the
+design and writes ``summary.json`` and plots like Figs. 13/16 and 17.
 """
 
 import argparse
@@ -26,9 +22,11 @@ import time
 from typing import List, Optional
 
 from flexure_ctrl.cli import report_command
+from flexure_ctrl.cli.up_command import check_period
 from flexure_ctrl.core.correction import (DEFAULT_CUTOFF_HZ, DEFAULT_SPIKE_THRESHOLD,
                                           IterativeCorrector, path_errors)
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.core.runs import load_last_run, RUN_TOPICS
 
 LEAD_IN_S = 2.5
@@ -62,11 +60,6 @@ def add_parser(commands) -> None:
     parser.add_argument('--iterations', type=int, default=3, metavar='N',
                         help='corrections after the original run, 0 or more '
                              '(default: %(default)s)')
-    parser.add_argument('--warm-up-runs', type=int, default=0, metavar='N',
-                        help='runs of the uncorrected path before the original run, recorded '
-                             'but not learned from or tabled: the actuator loops measure the '
-                             'backlash in them, to take it up from the original run on where '
-                             'adapt_backlash is on (default: %(default)s)')
     parser.add_argument('--period', type=float, default=14.0, metavar='S',
                         help='period of the path in s (default: %(default)s, as in the paper)')
     parser.add_argument('--gain', type=float, default=1.0,
@@ -161,11 +154,24 @@ class _Operator:
 
     def __init__(self) -> None:
         import rclpy
+        from diagnostic_msgs.msg import DiagnosticStatus
+        from flexure_ctrl.nodes.common import RUN_STATUS_NAME, RUN_TOPIC
         from rclpy.executors import SingleThreadedExecutor
 
         self._rclpy = rclpy
         rclpy.init()
         self.node = rclpy.create_node('flexure_ctrl_demo')
+        self.run = RunMessage(RunState.IDLE)
+        self._last_stamp_ns = 0
+        self._run_changed = threading.Condition()
+
+        def on_run(message) -> None:
+            if message.name == RUN_STATUS_NAME:
+                with self._run_changed:
+                    self.run = RunMessage.from_pairs((kv.key, kv.value) for kv in message.values)
+                    self._run_changed.notify_all()
+
+        self.node.create_subscription(DiagnosticStatus, RUN_TOPIC, on_run, 10)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
@@ -206,10 +212,27 @@ class _Operator:
             self.node.destroy_client(client)
 
     def start_run(self) -> None:
+        """Start a run; return once it runs (both loops hold its plan)."""
         from std_srvs.srv import Trigger
-        response = self._call(Trigger, '/trajectory_generator/start', Trigger.Request())
+        with self._run_changed:
+            self._last_stamp_ns = self.run.trajectory_stamp_ns
+        response = self._call(Trigger, '/trajectory_generator/start', Trigger.Request(),
+                              timeout_s=30.0)
         if not response.success:
             raise DemoError(f'trajectory_generator/start: {response.message}')
+
+    def wait_for_run_end(self, timeout_s: float) -> Optional[RunMessage]:
+        """Return the run owner's word once the run has ended; None on time-out."""
+        deadline = time.monotonic() + timeout_s
+        with self._run_changed:
+            # The word of this run, not the last one's (its stamp is new).
+            while self.run.trajectory_stamp_ns == self._last_stamp_ns or self.run.state in (
+                    RunState.ARMING, RunState.RUNNING, RunState.IDLE):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
+                    return None
+                self._run_changed.wait(remaining)
+            return self.run
 
     def set_correction_file(self, path: str) -> None:
         from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
@@ -287,11 +310,10 @@ def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
     topics = ALL_RUN_TOPICS if arguments.record_states else DEMO_TOPICS
     recorder = _start_recorder(bag_dir, bag_name, topics, arguments.quiet)
     try:
-        mark = len(up.lines)
         operator.start_run()
         run_s = LEAD_IN_S + arguments.period + LEAD_OUT_S
         started = time.monotonic()
-        while up.wait_for_line(lambda line: 'run finished' in line, 0.5, mark) is None:
+        while (ended := operator.wait_for_run_end(0.5)) is None:
             elapsed_s = time.monotonic() - started
             progress.run(index, elapsed_s, run_s)
             if up.popen.poll() is not None:
@@ -299,6 +321,8 @@ def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
                                 + '\n'.join(up.lines[-20:]))
             if elapsed_s > run_s + 30.0:
                 raise DemoError(f'the run did not finish within {run_s + 30.0:.0f} s')
+        if ended.state is not RunState.FINISHED:
+            raise DemoError(f'the run {ended.state.value}: {ended.reason}')
         progress.run(index, run_s, run_s)
     finally:
         if recorder.interrupt(RECORDER_TIMEOUT_S) != 0:
@@ -308,10 +332,9 @@ def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
 
 
 def run(arguments: argparse.Namespace) -> int:
+    check_period(arguments.period)  # passed on to flexure-ctrl up: refused here, before it
     if arguments.iterations < 0:
         raise DemoError('--iterations must be 0 or more')
-    if arguments.warm_up_runs < 0:
-        raise DemoError('--warm-up-runs must be 0 or more')
     if not arguments.spike_threshold >= 0.0:
         raise DemoError('--spike-threshold must be 0 (learn everything) or more')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -324,28 +347,18 @@ def run(arguments: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     up = _Process(_up_command(arguments), arguments.quiet)
     operator = None
-    progress = _Progress(arguments.warm_up_runs + arguments.iterations + 1)
+    progress = _Progress(arguments.iterations + 1)
     rows = []
-    warm_up_bags = []
     try:
         if up.wait_for_line(lambda line: 'all processes up' in line, UP_TIMEOUT_S) is None:
             raise DemoError('the simulated rig and nodes did not come up:\n'
                             + '\n'.join(up.lines[-20:]))
         operator = _Operator()
         operator.wait_until_connected(60.0)
-        for index in range(arguments.warm_up_runs):
-            bag = _record_run(up, operator, arguments.bag_dir,
-                              f'demo_{arguments.design}_{stamp}_warm_up_{index}', arguments,
-                              progress, len(warm_up_bags))
-            warm_up_bags.append(str(bag))
-            errors = path_errors(load_last_run(bag))
-            maximum_mm = 1e3 * errors.max_abs_error_m()
-            progress.line(f'[demo] warm-up run {index}: max |e_x| {maximum_mm[0]:.3f} mm, '
-                          f'max |e_y| {maximum_mm[1]:.3f} mm (not learned from)  ({bag})')
         for index in range(arguments.iterations + 1):
             bag = _record_run(up, operator, arguments.bag_dir,
                               f'demo_{arguments.design}_{stamp}_iteration_{index}', arguments,
-                              progress, len(warm_up_bags) + index)
+                              progress, index)
             errors = path_errors(load_last_run(bag))
             corrector.add_run(errors)
             row = report_command.iteration_summary(index, bag, errors)
@@ -377,7 +390,7 @@ def run(arguments: argparse.Namespace) -> int:
     report_command.add_reductions(rows)
     report_command.print_table(arguments.design, rows)
     summary = {'design': arguments.design, 'period_s': arguments.period,
-               'warm_up_bags': warm_up_bags, 'iterations': rows,
+               'iterations': rows,
                'paper_table_1': report_command.PAPER_TABLE_1.get(arguments.design)}
     summary_path = report_command.write_summary(out, summary)
     errors = [iteration.errors for iteration in corrector.iterations]

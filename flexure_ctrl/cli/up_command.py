@@ -11,6 +11,7 @@ ends by itself, the others are stopped the same way and ``up`` exits non-zero.
 
 import argparse
 import ctypes
+import math
 import os
 from pathlib import Path
 import signal
@@ -19,9 +20,10 @@ import sys
 import tempfile
 import threading
 import time
-from typing import List, Tuple, Union
+from typing import List, Optional, Tuple, Union
 
 from flexure_ctrl.core.design import find_config_file, find_design_file, nest_dotted
+from flexure_ctrl.core.errors import FlexureCtrlError
 import yaml
 
 PR_SET_PDEATHSIG = 1
@@ -47,13 +49,23 @@ NODES = (
     ('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
     ('inverse_solver', 'inverse_solver', [], 'branch'),
     ('trajectory_generator', 'trajectory_generator', [], 'call ~/start'),
-    # A loop is up when its drive is enabled and it hears the inverse solver: a path started
-    # before the second would leave that actuator standing while the other moves.
+    # A loop is up when its drive is enabled. A run starts only once the generator has
+    # heard both loops say so on their status topics, whatever up has seen.
     ('actuator_1', 'actuator_loop', ['-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'],
-     ('operation enabled', 'setpoints from 1 publisher')),
+     'operation enabled'),
     ('actuator_2', 'actuator_loop', ['-r', '__node:=actuator_2', '-p', 'actuator:=actuator_2'],
-     ('operation enabled', 'setpoints from 1 publisher')),
+     'operation enabled'),
 )
+
+
+class UpOptionError(FlexureCtrlError, ValueError):
+    """An option of ``flexure-ctrl up`` (or of a command that passes it on) is invalid."""
+
+
+def check_period(period_s: Optional[float]) -> None:
+    """Refuse a ``--period`` that is not a finite time above 0 s; None is not given."""
+    if period_s is not None and not (math.isfinite(period_s) and period_s > 0.0):
+        raise UpOptionError(f'--period must be > 0 s and finite, got {period_s}')
 
 
 def add_parser(commands) -> None:
@@ -63,7 +75,8 @@ def add_parser(commands) -> None:
                     'instances and tracker_bridge as separate processes, with the design '
                     'YAML and the rig YAML as parameter files. Output lines are prefixed with '
                     'the process name; Ctrl-C stops everything cleanly. The path starts when '
-                    'trajectory_generator/start is called, or at once with --autostart. '
+                    'trajectory_generator/start is called, or with --autostart as soon as both '
+                    'actuator loops report their drives enabled. '
                     f'With --sim, {" and ".join(SIM_BACKGROUND)} run at niceness '
                     f'+{SIM_BACKGROUND_NICENESS}, so that on a small machine the simulated '
                     'hardware, the loops and the tracker are served first.')
@@ -87,7 +100,8 @@ def add_parser(commands) -> None:
     parser.add_argument('--period', type=float, metavar='S',
                         help="period of the sine path in s (default: the paper's 14 s)")
     parser.add_argument('--autostart', action='store_true',
-                        help='start the path as soon as trajectory_generator is up')
+                        help='start the path as soon as both actuator loops report their drives '
+                             'enabled (never before)')
     parser.add_argument('--can-port', type=int, metavar='PORT',
                         help='socketcand port for the sim and the actuator loops')
     parser.add_argument('--tracker-port', type=int, metavar='PORT',
@@ -214,6 +228,7 @@ def _rig_ports(rig_config: Path) -> tuple:
 
 
 def run(arguments: argparse.Namespace) -> int:
+    check_period(arguments.period)  # before anything starts
     design_file = find_design_file(arguments.design).resolve()
     rig_config = arguments.rig_config or find_config_file(
         'sim.yaml' if arguments.sim else 'rig.yaml')
@@ -241,7 +256,7 @@ def run(arguments: argparse.Namespace) -> int:
         per_node['tracker_bridge']['port'] = tracker_port
     if arguments.correction:
         per_node['trajectory_generator']['correction_file'] = str(arguments.correction.resolve())
-    if arguments.period:
+    if arguments.period is not None:
         per_node['trajectory_generator']['path.period_s'] = float(arguments.period)
     if arguments.autostart:
         per_node['trajectory_generator']['autostart'] = True

@@ -1,5 +1,5 @@
 """
-The actuator position loop: a proportional law, its limits and a setpoint watchdog.
+The actuator position loop: a proportional law, its limits, and the per-cycle controller.
 
 The paper runs each lead-screw actuator under a proportional feedback loop on the error
 between the extension command (the feedforward setpoint) and the actuator's own
@@ -11,15 +11,23 @@ output is a velocity command:
 clipped to the speed limit, and never pointing further outward when the actuator is
 already at (or past) its stroke limit.
 
+:class:`ActuatorController` is one loop cycle as a step function with time passed in:
+what the command follows (the run's trajectory sampled by the clock, or the jog stream
+under its watchdog), the law above, the path tolerance, and the ramp to zero velocity
+that every stop ends in.
+
 Everything here is pure and allocation-free on the hot path: plain floats in, plain
 floats out, state kept in slots. Positions are in m, velocities in m/s, accelerations in
-m/s^2, durations in s and timestamps in integer nanoseconds of one monotonic clock.
+m/s^2, durations in s and instants in integer nanoseconds of the system clock that every
+node shares (setpoint and trajectory stamps are on it).
 """
 
 from dataclasses import dataclass
 import math
+from typing import Optional
 
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.run import Following, JointSampler, RunMessage, RunState
 
 _NS_PER_S = 1_000_000_000
 
@@ -41,8 +49,8 @@ class LoopLimits:
     :param max_speed_m_s: largest velocity command magnitude (m/s), > 0.
     :param stroke_limit_m: symmetric extension limit (m), > 0: setpoints are clamped to
         ``[-stroke_limit_m, +stroke_limit_m]`` and no outward command is given past it.
-    :param max_accel_m_s2: largest acceleration (m/s^2) of ramps, > 0; the deceleration a
-        :class:`SetpointWatchdog` built with :meth:`SetpointWatchdog.from_limits` uses.
+    :param max_accel_m_s2: deceleration (m/s^2) of the ramp to zero velocity that ends
+        every stop, > 0.
     """
 
     max_speed_m_s: float
@@ -164,400 +172,249 @@ class ProportionalLoop:
         return velocity
 
 
-class SetpointWatchdog:
+class StreamHold:
     """
-    Ramp the command to zero when the setpoint stream stops, and hold it there.
+    The latest jog setpoint, extrapolated along its velocity between arrivals.
 
-    :meth:`feed` on each fresh setpoint; :meth:`limit` on each loop cycle. While a setpoint
-    is younger than ``timeout_s`` the command passes unchanged. Once it is older (or before
-    the first one), the output ramps from its last value towards zero at exactly
-    ``decel_m_s2`` and then holds zero, whatever the loop asks, until the next feed.
+    The loop runs faster (500 Hz) than setpoints arrive (e.g. 100 Hz), so at time t the
+    setpoint is ``position + velocity * (t - stamp)``, followed at most ``max_age_s``
+    either way: a stale setpoint stops moving instead of running away.
     """
 
-    __slots__ = ('_timeout_ns', 'decel_m_s2', '_last_feed_ns', '_output_m_s', '_expired')
+    __slots__ = ('_max_age_ns', 'position_m', 'velocity_m_s', 'stamp_ns')
 
-    def __init__(self, timeout_s: float, decel_m_s2: float) -> None:
+    def __init__(self, max_age_s: float) -> None:
+        """:param max_age_s: longest extrapolation (s), >= 0."""
+        _require(math.isfinite(max_age_s) and max_age_s >= 0.0,
+                 f'max_age_s must be finite and >= 0, got {max_age_s!r}')
+        self._max_age_ns = int(round(max_age_s * _NS_PER_S))
+        self.position_m = 0.0
+        self.velocity_m_s = 0.0
+        self.stamp_ns: Optional[int] = None
+
+    def update(self, position_m: float, velocity_m_s: float, stamp_ns: int) -> None:
+        """Store a setpoint (m, m/s) valid at ``stamp_ns``."""
+        self.position_m = position_m
+        self.velocity_m_s = velocity_m_s
+        self.stamp_ns = stamp_ns
+
+    def position_at(self, when_ns: int) -> float:
+        """Return the setpoint (m) due at ``when_ns``, before or after the latest stamp."""
+        offset_ns = min(max(when_ns - self.stamp_ns, -self._max_age_ns), self._max_age_ns)
+        return self.position_m + self.velocity_m_s * (offset_ns / _NS_PER_S)
+
+    def velocity(self, now_ns: int) -> float:
+        """Return the setpoint's rate of change, m/s, at ``now_ns``; zero past the cap."""
+        if now_ns - self.stamp_ns > self._max_age_ns:
+            return 0.0
+        return self.velocity_m_s
+
+
+class ActuatorController:
+    """
+    One actuator loop's cycle, with time passed in: what to follow, the law, the stops.
+
+    The command follows one of:
+
+    - the run's trajectory (:meth:`load_trajectory`), sampled by the clock once the run
+      owner says RUNNING for that trajectory (:meth:`on_run_message`). A run wins over
+      the stream: jog setpoints are ignored while it lasts. From path time zero on, a
+      reading farther than ``path_tolerance_m`` from the plan of its own time stops the
+      loop and reports it (:attr:`problem`); so does a run owner silent for
+      ``watchdog_timeout_s``.
+    - the jog stream (:meth:`on_stream_setpoint`) while its latest setpoint is younger
+      than ``watchdog_timeout_s``; a setpoint made longer ago never moves the actuator.
+
+    Anything else (a stop, the end of a run, a stale stream) ramps the command to zero
+    at ``limits.max_accel_m_s2`` and holds it there.
+
+    :param loop: the proportional law and its limits.
+    :param watchdog_timeout_s: largest age (s) of the run owner's word and of a jog
+        setpoint, > 0.
+    :param stream_hold_max_age_s: longest extrapolation (s) of a jog setpoint, >= 0.
+    :param path_tolerance_m: largest |reading - plan| (m) during a run, > 0.
+    :param compensate_reading_age: compare each reading with the setpoint of the time it
+        was taken (its age passed to :meth:`step`) rather than of now.
+    :param max_reading_age_s: a reading older than this (a clock step, not a delay) is
+        compared with now.
+    """
+
+    __slots__ = ('loop', '_timeout_ns', 'path_tolerance_m', '_compensate', '_max_reading_ns',
+                 'hold', 'following', 'output_m_s', 'setpoint_m', 'problem', 'stop_reason',
+                 'trajectory_stamp_ns', '_sampler', '_loaded_sampler', '_loaded_stamp_ns',
+                 '_last_run_ns', '_last_step_ns', 'stream_ignored', 'stream_stale',
+                 '_ended_stamp_ns',
+                 'max_deviation_m')
+
+    _MAX_DT_S = 0.02
+
+    def __init__(self, loop: ProportionalLoop, watchdog_timeout_s: float,
+                 stream_hold_max_age_s: float, path_tolerance_m: float,
+                 compensate_reading_age: bool = True, max_reading_age_s: float = 1.0) -> None:
+        _require(math.isfinite(watchdog_timeout_s) and watchdog_timeout_s > 0.0,
+                 f'watchdog_timeout_s must be finite and > 0, got {watchdog_timeout_s!r}')
+        _require(math.isfinite(path_tolerance_m) and path_tolerance_m > 0.0,
+                 f'path_tolerance_m must be finite and > 0, got {path_tolerance_m!r}')
+        self.loop = loop
+        self._timeout_ns = int(round(watchdog_timeout_s * _NS_PER_S))
+        self.path_tolerance_m = float(path_tolerance_m)
+        self._compensate = bool(compensate_reading_age)
+        self._max_reading_ns = int(round(max_reading_age_s * _NS_PER_S))
+        self.hold = StreamHold(min(stream_hold_max_age_s, watchdog_timeout_s))
+        self.following = Following.IDLE
+        self.output_m_s = 0.0
+        self.setpoint_m = math.nan
+        self.problem = ''
+        self.stop_reason = ''
+        self.trajectory_stamp_ns = 0
+        self._sampler: Optional[JointSampler] = None
+        self._loaded_sampler: Optional[JointSampler] = None
+        self._loaded_stamp_ns = 0
+        self._last_run_ns = 0
+        # The run last followed: it is not followed again, whatever its word says later.
+        self._ended_stamp_ns: Optional[int] = None
+        self._last_step_ns: Optional[int] = None
+        self.stream_ignored = 0
+        self.stream_stale = 0
+        self.max_deviation_m = 0.0
+
+    @property
+    def loaded_stamp_ns(self) -> int:
+        """Stamp (ns) of the trajectory held for the next run; 0: none."""
+        return self._loaded_stamp_ns
+
+    # ------------------------------------------------------------------ inputs
+
+    def load_trajectory(self, sampler: JointSampler, stamp_ns: int) -> None:
         """
-        Build a watchdog that starts expired (no setpoint yet).
+        Hold a checked trajectory whose path time zero is ``stamp_ns``, for the next run.
 
-        :param timeout_s: largest setpoint age (s) before the ramp starts, > 0.
-        :param decel_m_s2: deceleration of the ramp to zero (m/s^2), > 0.
-        :raises LoopConfigError: a non-positive timeout or deceleration.
+        A run in progress keeps its own; a new trajectory clears the last run's problem.
         """
-        _require(math.isfinite(timeout_s) and timeout_s > 0.0,
-                 f'timeout_s must be finite and > 0, got {timeout_s!r}')
-        _require(math.isfinite(decel_m_s2) and decel_m_s2 > 0.0,
-                 f'decel_m_s2 must be finite and > 0, got {decel_m_s2!r}')
-        self._timeout_ns = int(round(timeout_s * _NS_PER_S))
-        self.decel_m_s2 = float(decel_m_s2)
-        self._last_feed_ns = None
-        self._output_m_s = 0.0
-        self._expired = True
+        self._loaded_sampler = sampler
+        self._loaded_stamp_ns = stamp_ns
+        if self.following is not Following.RUN:
+            self.problem = ''
 
-    @classmethod
-    def from_limits(cls, timeout_s: float, limits: LoopLimits) -> 'SetpointWatchdog':
-        """Watchdog that ramps at the loop's ``max_accel_m_s2``."""
-        return cls(timeout_s, limits.max_accel_m_s2)
+    def on_run_message(self, message: RunMessage, now_ns: int) -> None:
+        """Take the run owner's word (it also proves the owner alive)."""
+        self._last_run_ns = now_ns
+        if self.following is Following.RUN:
+            if message.state is not RunState.RUNNING \
+                    or message.trajectory_stamp_ns != self.trajectory_stamp_ns:
+                self.stop(message.reason or f'the run {message.state.value}')
+            return
+        if (message.state is RunState.RUNNING and self._loaded_sampler is not None
+                and message.trajectory_stamp_ns == self._loaded_stamp_ns
+                and message.trajectory_stamp_ns != self._ended_stamp_ns):
+            self._sampler = self._loaded_sampler
+            self.trajectory_stamp_ns = self._loaded_stamp_ns
+            self.following = Following.RUN
+            self.problem = self.stop_reason = ''
+            self.max_deviation_m = 0.0
 
-    @property
-    def timeout_s(self) -> float:
-        """Largest setpoint age (s) before the ramp starts."""
-        return self._timeout_ns / _NS_PER_S
+    def on_stream_setpoint(self, position_m: float, velocity_m_s: float, made_ns: int,
+                           now_ns: int) -> bool:
+        """
+        Take a jog setpoint made at ``made_ns``; return whether it is followed.
 
-    @property
-    def expired(self) -> bool:
-        """Whether the last :meth:`limit` found no fresh setpoint (ramping or holding)."""
-        return self._expired
+        Ignored during a run, and when made more than ``watchdog_timeout_s`` ago (it
+        must not restart motion) or not a finite number.
+        """
+        if self.following is Following.RUN:
+            self.stream_ignored += 1
+            return False
+        if now_ns - made_ns > self._timeout_ns or not (
+                math.isfinite(position_m) and math.isfinite(velocity_m_s)):
+            self.stream_stale += 1
+            return False
+        self.hold.update(position_m, velocity_m_s, made_ns)
+        self.following = Following.STREAM
+        return True
 
-    @property
-    def output_m_s(self) -> float:
-        """Return the last command :meth:`limit` gave (m/s)."""
-        return self._output_m_s
+    def stop(self, reason: str, problem: bool = False) -> None:
+        """
+        Ramp to zero velocity and hold it, whatever was followed.
 
-    def feed(self, now_ns: int) -> None:
-        """Note a fresh setpoint received at ``now_ns`` (ns, monotonic)."""
-        self._last_feed_ns = now_ns
+        :param reason: why, for the diagnostics.
+        :param problem: report it as a problem (the run owner then ends the run).
+        """
+        if self.following is Following.RUN:
+            self._ended_stamp_ns = self.trajectory_stamp_ns
+        self.following = Following.STOPPING
+        self.stop_reason = reason
+        if problem:
+            self.problem = reason
 
     def reset(self) -> None:
-        """Forget the last output (the drive was stopped by other means); keep the feed."""
-        self._output_m_s = 0.0
+        """Forget the last command and stop following (the drive was stopped otherwise)."""
+        if self.following is Following.RUN:
+            self._ended_stamp_ns = self.trajectory_stamp_ns
+        self.following = Following.IDLE
+        self.output_m_s = 0.0
+        self._last_step_ns = None
 
-    def is_fresh(self, now_ns: int) -> bool:
-        """Whether the last setpoint is at most ``timeout_s`` old at ``now_ns``."""
-        last = self._last_feed_ns
-        return last is not None and now_ns - last <= self._timeout_ns
+    # ------------------------------------------------------------------ the cycle
 
-    def setpoint_age_s(self, now_ns: int) -> float:
-        """Age (s) of the last setpoint at ``now_ns``; infinity before the first one."""
-        last = self._last_feed_ns
-        return math.inf if last is None else (now_ns - last) / _NS_PER_S
-
-    def limit(self, command_m_s: float, now_ns: int, dt_s: float) -> float:
+    def step(self, now_ns: int, measured_m: float, reading_age_ns: int = 0) -> float:
         """
-        Apply the watchdog to one cycle's command.
+        Return this cycle's velocity command (m/s).
 
-        :param command_m_s: the loop's velocity command (m/s).
-        :param now_ns: time of this cycle (ns, same clock as :meth:`feed`).
-        :param dt_s: time since the previous cycle (s); sets the ramp step.
-        :returns: the command to send (m/s).
+        :param now_ns: this cycle's instant (ns).
+        :param measured_m: the latest potentiometer reading (m).
+        :param reading_age_ns: how old that reading is (ns); 0 if unknown.
         """
-        if self.is_fresh(now_ns):
-            self._expired = False
-            self._output_m_s = command_m_s
-            return command_m_s
-        self._expired = True
-        step = self.decel_m_s2 * (dt_s if dt_s > 0.0 else 0.0)
-        previous = self._output_m_s
+        last_ns = self._last_step_ns
+        self._last_step_ns = now_ns
+        dt_s = 0.0 if last_ns is None else min(max((now_ns - last_ns) / _NS_PER_S, 0.0),
+                                               self._MAX_DT_S)
+        if 0 < reading_age_ns < self._max_reading_ns and self._compensate:
+            reading_ns = now_ns - reading_age_ns
+        else:
+            reading_ns = now_ns
+        following = self.following
+        if following is Following.RUN:
+            silent_ns = now_ns - self._last_run_ns
+            if silent_ns > self._timeout_ns:
+                self.stop(f'no word from the run owner for {silent_ns / _NS_PER_S:.3f} s '
+                          f'(watchdog_timeout_s {self._timeout_ns / _NS_PER_S} s)', True)
+            else:
+                sampler = self._sampler
+                start_ns = self.trajectory_stamp_ns
+                planned_m, _ = sampler.sample((reading_ns - start_ns) / _NS_PER_S)
+                _, velocity_m_s = sampler.sample((now_ns - start_ns) / _NS_PER_S)
+                self.setpoint_m = planned_m
+                if reading_ns >= start_ns:
+                    deviation_m = abs(measured_m - planned_m)
+                    if deviation_m > self.max_deviation_m:
+                        self.max_deviation_m = deviation_m
+                    if deviation_m > self.path_tolerance_m:
+                        self.stop(f'path tolerance: {measured_m * 1e3:+.3f} mm read against '
+                                  f'{planned_m * 1e3:+.3f} mm planned at path time '
+                                  f'{(reading_ns - start_ns) / _NS_PER_S:.3f} s (tolerance '
+                                  f'{self.path_tolerance_m * 1e3:.3f} mm)', True)
+                        return self._ramp(dt_s)
+                self.output_m_s = self.loop.command(planned_m, velocity_m_s, measured_m)
+                return self.output_m_s
+        elif following is Following.STREAM:
+            hold = self.hold
+            if now_ns - hold.stamp_ns <= self._timeout_ns:
+                self.setpoint_m = hold.position_at(reading_ns)
+                self.output_m_s = self.loop.command(self.setpoint_m, hold.velocity(now_ns),
+                                                    measured_m)
+                return self.output_m_s
+            self.stop(f'no fresh setpoint for {self._timeout_ns / _NS_PER_S} s')
+        return self._ramp(dt_s)
+
+    def _ramp(self, dt_s: float) -> float:
+        """One step of the ramp to zero velocity at the loop's deceleration."""
+        step = self.loop.limits.max_accel_m_s2 * dt_s
+        previous = self.output_m_s
         if previous > step:
             output = previous - step
         elif previous < -step:
             output = previous + step
         else:
             output = 0.0
-        self._output_m_s = output
+        self.output_m_s = output
         return output
-
-
-class FirstOrderHold:
-    """
-    Extrapolate the latest setpoint between arrivals (first-order hold).
-
-    The loop runs faster (500 Hz) than setpoints arrive (the demand rate, e.g. 100 Hz),
-    so at time t the setpoint used is ``position + velocity * (t - stamp)``. The age is
-    capped at ``max_age_s``: a stale setpoint stops moving instead of running away, and
-    its velocity (for the feedforward) reads zero from then on.
-    """
-
-    __slots__ = ('_max_age_ns', 'position_m', 'velocity_m_s', 'stamp_ns')
-
-    def __init__(self, max_age_s: float) -> None:
-        """
-        Build an empty hold.
-
-        :param max_age_s: longest extrapolation (s), >= 0.
-        :raises LoopConfigError: a negative or non-finite cap.
-        """
-        _require(math.isfinite(max_age_s) and max_age_s >= 0.0,
-                 f'max_age_s must be finite and >= 0, got {max_age_s!r}')
-        self._max_age_ns = int(round(max_age_s * _NS_PER_S))
-        self.position_m = 0.0
-        self.velocity_m_s = 0.0
-        self.stamp_ns = None
-
-    @property
-    def has_setpoint(self) -> bool:
-        """Whether any setpoint has been received."""
-        return self.stamp_ns is not None
-
-    def update(self, position_m: float, velocity_m_s: float, stamp_ns: int) -> None:
-        """Store a setpoint (m, m/s) valid at ``stamp_ns`` (ns, monotonic)."""
-        self.position_m = position_m
-        self.velocity_m_s = velocity_m_s
-        self.stamp_ns = stamp_ns
-
-    def _age_ns(self, now_ns: int) -> int:
-        age = now_ns - self.stamp_ns
-        if age < 0:
-            return 0
-        return self._max_age_ns if age > self._max_age_ns else age
-
-    def position(self, now_ns: int) -> float:
-        """Extrapolated setpoint (m) at ``now_ns``; 0.0 before the first setpoint."""
-        if self.stamp_ns is None:
-            return 0.0
-        return self.position_m + self.velocity_m_s * (self._age_ns(now_ns) / _NS_PER_S)
-
-    def position_at(self, when_ns: int) -> float:
-        """
-        Return the setpoint (m) due at ``when_ns``, which may lie before the latest stamp.
-
-        For comparing a measurement with the setpoint of its own time: the line through
-        the latest setpoint, followed at most ``max_age_s`` either way.
-        """
-        if self.stamp_ns is None:
-            return 0.0
-        offset_ns = min(max(when_ns - self.stamp_ns, -self._max_age_ns), self._max_age_ns)
-        return self.position_m + self.velocity_m_s * (offset_ns / _NS_PER_S)
-
-    def position_for_reading(self, now_ns: int, reading_age_ns: int,
-                             max_reading_age_ns: int) -> float:
-        """
-        Return the setpoint (m) to compare with a position reading ``reading_age_ns`` old.
-
-        That of the reading's own time: against the setpoint of now, a moving actuator
-        would show velocity times the reading's (varying) age as error. An age outside
-        ``(0, max_reading_age_ns)`` (unknown, or implausible: a clock step) gives the
-        setpoint of now.
-        """
-        if 0 < reading_age_ns < max_reading_age_ns:
-            return self.position_at(now_ns - reading_age_ns)
-        return self.position(now_ns)
-
-    def velocity(self, now_ns: int) -> float:
-        """Return the setpoint velocity in m/s at ``now_ns``, zero once the age cap is hit."""
-        if self.stamp_ns is None or now_ns - self.stamp_ns >= self._max_age_ns:
-            return 0.0
-        return self.velocity_m_s
-
-
-class BacklashTakeUp:
-    """
-    Velocity feedforward that carries a lead screw's nut across its backlash on reversal.
-
-    The loop reads the potentiometer on the rod, after the backlash. Where the setpoint
-    reverses, the nut must first cross the dead band (``backlash_m`` wide) while the rod
-    stands still; the proportional term only acts once that shows as error, so every
-    reversal leaves a short, sharp error at the end point. This adds, when the setpoint
-    velocity changes sign, a velocity pulse of ``backlash_m / take_up_s`` for
-    ``take_up_s``: the nut's crossing, fed forward. The pulse's integral is the
-    backlash whatever the cycle times (the last cycle of a pulse is shortened).
-
-    Until the setpoint has moved one way (the start of a run), the nut's side is unknown
-    and nothing is added. A setpoint velocity within ``+-min_speed_m_s`` keeps the side,
-    except that a held setpoint the loop itself drives to (a step, such as a run's
-    lead-in to its first point: faster than ``push_speed_m_s``) puts the nut on the side
-    of that drive, so the path's first move away from it is taken up if it reverses.
-
-    :param backlash_m: width of the dead band (m), 0 or more; 0 turns it off.
-    :param take_up_s: duration of the pulse (s), > 0.
-    :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0.
-    :param push_speed_m_s: command speed (m/s) towards a held setpoint that counts as
-        pushing the nut to one side, > 0; above the loop's dither on potentiometer noise.
-    :raises LoopConfigError: a value out of range.
-    """
-
-    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', 'push_speed_m_s', '_side',
-                 '_remaining_m')
-
-    def __init__(self, backlash_m: float, take_up_s: float = 0.02,
-                 min_speed_m_s: float = 1e-4, push_speed_m_s: float = 2e-3) -> None:
-        _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
-                 f'backlash_m must be finite and >= 0, got {backlash_m!r}')
-        _require(math.isfinite(take_up_s) and take_up_s > 0.0,
-                 f'take_up_s must be finite and > 0, got {take_up_s!r}')
-        _require(math.isfinite(min_speed_m_s) and min_speed_m_s > 0.0,
-                 f'min_speed_m_s must be finite and > 0, got {min_speed_m_s!r}')
-        self.backlash_m = float(backlash_m)
-        self.take_up_s = float(take_up_s)
-        _require(math.isfinite(push_speed_m_s) and push_speed_m_s > 0.0,
-                 f'push_speed_m_s must be finite and > 0, got {push_speed_m_s!r}')
-        self.min_speed_m_s = float(min_speed_m_s)
-        self.push_speed_m_s = float(push_speed_m_s)
-        self._side = 0
-        self._remaining_m = 0.0
-
-    def velocity(self, setpoint_velocity_m_s: float, dt_s: float,
-                 last_command_m_s: float = 0.0) -> float:
-        """
-        Return the speed (m/s, signed) to add to this cycle's command, for ``dt_s`` (s).
-
-        :param last_command_m_s: the loop's previous velocity command (m/s).
-        """
-        if self.backlash_m == 0.0:
-            return 0.0
-        if setpoint_velocity_m_s > self.min_speed_m_s:
-            moving = 1
-        elif setpoint_velocity_m_s < -self.min_speed_m_s:
-            moving = -1
-        else:
-            moving = self._side
-            if self._remaining_m == 0.0 and abs(last_command_m_s) > self.push_speed_m_s:
-                # The loop drives to a held setpoint: the nut pushes from that side now.
-                self._side = moving = 1 if last_command_m_s > 0.0 else -1
-        if moving != self._side:
-            # A reversal: the nut crosses the whole band (the first move of a run: none).
-            self._remaining_m = moving * self.backlash_m if self._side else 0.0
-            self._side = moving
-        if self._remaining_m == 0.0 or dt_s <= 0.0:
-            return 0.0
-        pulse_m_s = math.copysign(self.backlash_m / self.take_up_s, self._remaining_m)
-        step_m = pulse_m_s * dt_s
-        if abs(step_m) >= abs(self._remaining_m):
-            velocity_m_s = self._remaining_m / dt_s
-            self._remaining_m = 0.0
-            return velocity_m_s
-        self._remaining_m -= step_m
-        return pulse_m_s
-
-
-class NutObserver:
-    """
-    Estimate of the rod and of the screw nut inside the backlash, for a quieter loop.
-
-    The potentiometer reads the rod, with noise; fed straight into the proportional law
-    that noise moves the actuator (and, through the arm's lever, the end point) a little
-    differently on every run, and while the rod stands still it walks the nut about
-    inside the backlash, so that where a run's first move starts is chance. This
-    predicts instead: the drive's velocity follows the command through a first-order lag
-    (``lag_s``), the nut integrates it, and the rod follows the nut through a dead band
-    ``backlash_m`` wide (a play operator). Each reading corrects rod and nut together by
-    ``correction_gain`` times its innovation, taken against the estimate of the reading's
-    own time (a reading is a CAN round trip old), so the noise is averaged over about
-    ``1 / correction_gain`` readings while drift and a velocity-scale error are still
-    corrected.
-
-    :meth:`error_m` is the loop's error with the nut as the controlled position: the nut
-    belongs one half band ahead of the setpoint in the direction the setpoint moves, so
-    a reversal asks for the crossing of the band at the loop's own gain, and only for
-    the part of it the nut has not crossed already. A held setpoint keeps the side it had.
-    Before the setpoint has moved one way it is the rod's error.
-
-    Positions are in m, velocities in m/s, durations in s, times in integer ns of one
-    monotonic clock.
-
-    :param backlash_m: modelled dead band (m), 0 or more. Better too small than too
-        large: a band wider than the real one drives the rod past the setpoint at every
-        reversal.
-    :param lag_s: modelled time constant (s) of the drive's velocity response, > 0.
-    :param correction_gain: fraction of each reading's innovation applied, in (0, 1].
-    :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0. Small,
-        so that a setpoint starting slowly (an actuator near its turning point) turns the
-        side as it starts: at 1e-4 m/s it turned 0.3 s late on the simulated rig, the rod
-        stood meanwhile, and 0.5 mm of error at the end point remained after learning.
-    :param history: loop cycles of rod estimates kept to meet a reading's time, >= 2.
-    :param resync_m: innovation (m) beyond which two readings in a row, on one side, set
-        the estimate to the reading outright (a stall of the drive or of this host has
-        moved the rod off the model's path, which the small gain would take ~1 /
-        ``correction_gain`` readings to follow); 0: never. Several times the pot noise.
-    :raises LoopConfigError: a value out of range.
-    """
-
-    __slots__ = ('resync_m', '_outside', 'backlash_m', 'lag_s', 'correction_gain',
-                 'min_speed_m_s', 'rod_m', 'nut_m',
-                 'velocity_m_s', 'side', '_times_ns', '_rods_m', '_next', '_count',
-                 '_shift_total_m')
-
-    def __init__(self, backlash_m: float, lag_s: float, correction_gain: float,
-                 min_speed_m_s: float = 1e-6, history: int = 128,
-                 resync_m: float = 0.0) -> None:
-        _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
-                 f'backlash_m must be finite and >= 0, got {backlash_m!r}')
-        _require(math.isfinite(lag_s) and lag_s > 0.0,
-                 f'lag_s must be finite and > 0, got {lag_s!r}')
-        _require(math.isfinite(correction_gain) and 0.0 < correction_gain <= 1.0,
-                 f'correction_gain must lie in (0, 1], got {correction_gain!r}')
-        _require(math.isfinite(min_speed_m_s) and min_speed_m_s > 0.0,
-                 f'min_speed_m_s must be finite and > 0, got {min_speed_m_s!r}')
-        _require(history >= 2, f'history must be >= 2, got {history!r}')
-        _require(math.isfinite(resync_m) and resync_m >= 0.0,
-                 f'resync_m must be finite and >= 0, got {resync_m!r}')
-        self.resync_m = float(resync_m)
-        self._outside = 0
-        self.backlash_m = float(backlash_m)
-        self.lag_s = float(lag_s)
-        self.correction_gain = float(correction_gain)
-        self.min_speed_m_s = float(min_speed_m_s)
-        self._times_ns = [0] * history
-        self._rods_m = [0.0] * history
-        self.reset(0.0, 0)
-
-    def reset(self, position_m: float, now_ns: int) -> None:
-        """Put rod and nut at ``position_m`` (m), at rest, side unknown, at ``now_ns``."""
-        self.rod_m = self.nut_m = float(position_m)
-        self.velocity_m_s = 0.0
-        self.side = 0
-        self._next = 0
-        self._count = 0
-        self._shift_total_m = 0.0
-        self._remember(now_ns)
-
-    def _remember(self, now_ns: int) -> None:
-        # Stored net of the corrections so far, so that a later correction moves the
-        # remembered estimates too and two readings never correct the same error twice.
-        self._times_ns[self._next] = now_ns
-        self._rods_m[self._next] = self.rod_m - self._shift_total_m
-        self._next = (self._next + 1) % len(self._times_ns)
-        self._count += 1
-
-    def predict(self, command_m_s: float, dt_s: float, now_ns: int) -> None:
-        """Advance by ``dt_s`` (s) under ``command_m_s`` (m/s), ending at ``now_ns``."""
-        if dt_s > 0.0:
-            # The lag integrated exactly over the cycle, velocity and travel alike.
-            remaining = math.exp(-dt_s / self.lag_s)
-            start_m_s = self.velocity_m_s
-            self.velocity_m_s = command_m_s + (start_m_s - command_m_s) * remaining
-            self.nut_m += command_m_s * dt_s + (start_m_s - command_m_s) * self.lag_s * (
-                1.0 - remaining)
-            half_band_m = 0.5 * self.backlash_m
-            if self.nut_m - self.rod_m > half_band_m:
-                self.rod_m = self.nut_m - half_band_m
-            elif self.nut_m - self.rod_m < -half_band_m:
-                self.rod_m = self.nut_m + half_band_m
-        self._remember(now_ns)
-
-    def _rod_at(self, time_ns: int) -> float:
-        """Return the rod estimate of the latest remembered cycle not after ``time_ns``."""
-        size = len(self._times_ns)
-        newest = (self._next - 1) % size
-        index = newest
-        for _ in range(min(self._count, size) - 1):
-            if self._times_ns[index] <= time_ns:
-                break
-            index = (index - 1) % size
-        return self._rods_m[index] + self._shift_total_m
-
-    def correct(self, reading_m: float, reading_ns: int) -> None:
-        """Correct by a reading ``reading_m`` (m) of the rod taken at ``reading_ns``."""
-        innovation_m = reading_m - self._rod_at(reading_ns)
-        gain = self.correction_gain
-        if 0.0 < self.resync_m < abs(innovation_m):
-            side = 1 if innovation_m > 0.0 else -1
-            if self._outside == side:
-                gain = 1.0
-            self._outside = side
-        else:
-            self._outside = 0
-        shift_m = gain * innovation_m
-        self.rod_m += shift_m
-        self.nut_m += shift_m
-        self._shift_total_m += shift_m
-
-    def error_m(self, setpoint_m: float, setpoint_velocity_m_s: float) -> float:
-        """Return the loop error (m) for ``setpoint_m`` (m) moving at ``setpoint_velocity_m_s``."""
-        if setpoint_velocity_m_s > self.min_speed_m_s:
-            self.side = 1
-        elif setpoint_velocity_m_s < -self.min_speed_m_s:
-            self.side = -1
-        if self.side == 0:
-            return setpoint_m - self.rod_m
-        return setpoint_m + self.side * 0.5 * self.backlash_m - self.nut_m

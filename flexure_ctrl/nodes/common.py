@@ -6,10 +6,13 @@ value is rejected when it is set), wire topics and timers, and call the core.
 """
 
 import signal
+import sys
 import threading
 from typing import Callable, Optional, Sequence
 
 from flexure_ctrl.core.design import Design, design_from_parameters, nest_dotted, TABLE_KEYS
+from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.run import ACTUATOR_NAMES  # noqa: F401 (the nodes' import)
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rcl_interfaces.msg import ParameterType
 import rclpy
@@ -17,20 +20,35 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 RCLError = rclpy_implementation.RCLError
 RIG_FRAME = 'rig'
-ACTUATOR_NAMES = ('actuator_1', 'actuator_2')
 
 # Topic and service names: the package's public interface (README lists them).
 DEMAND_TOPIC = '/flexure/demand'
 DEMAND_PATH_TOPIC = '/flexure/demand_path'
-# Also defined in trajectory_generator (which publishes it); the same string.
 COMMAND_PATH_TOPIC = '/flexure/command_path'
 COMMAND_TOPIC = '/flexure/command'
 SETPOINTS_TOPIC = '/flexure/actuator_setpoints'
+TRAJECTORY_TOPIC = '/flexure/actuator_trajectory'
+RUN_TOPIC = '/flexure/run'
 DIAGNOSTICS_TOPIC = '/diagnostics'
+# DiagnosticStatus names: the run owner's word on RUN_TOPIC, and a loop's own.
+RUN_STATUS_NAME = 'flexure_ctrl/run'
+STATUS_PREFIX = 'flexure_ctrl/'
+
+
+def latched_qos() -> QoSProfile:
+    """Reliable, transient-local QoS: a late subscriber still gets the last message."""
+    return QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+def actuator_status_topic(actuator: str) -> str:
+    """Topic of one loop's readiness and problems, e.g. ``/flexure/actuator_1/status``."""
+    return f'/flexure/{actuator}/status'
 
 
 def actuator_state_topic(actuator: str) -> str:
@@ -112,11 +130,15 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
     """
     rclpy.init(args=args)
     node = None
+    refused = None
     try:
         node = node_factory()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except FlexureCtrlError as error:
+        # A refused configuration or plan, a drive that never answered: said in one line.
+        refused = error
     except RuntimeError:
         # A signal shuts the context down from under the executor. Mid wait-set it raises
         # RCLError (ros2/rclpy#398); mid take_message a bare pybind11 RuntimeError
@@ -126,6 +148,9 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
             raise
     finally:
         _tear_down(node)
+    if refused is not None:
+        print(f'[FATAL] {refused}', file=sys.stderr, flush=True)
+        raise SystemExit(1)
 
 
 def _tear_down(node: Optional[Node]) -> None:

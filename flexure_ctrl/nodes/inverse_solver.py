@@ -6,9 +6,11 @@ the previous solution, and published as a ``JointState`` (``actuator_1``,
 ``actuator_2``; position in m, velocity in m/s). The velocity is the Jacobian inverse
 applied to the command's velocity (finite difference of successive command points).
 Streaming uses the solver's scalar warm-started path (tens of microseconds a point).
-When the planned command path arrives, the whole path is solved ahead, so an
-unreachable path is reported before the arm moves. A point outside the workspace or the
-stroke is reported on ``/diagnostics`` and in the log, and never sent.
+This is the jog interface: a run's plan is solved and checked whole by
+``trajectory_generator`` before the run starts, so while a run lasts (as ``/flexure/run``
+says) command points are left alone: the loops would ignore setpoints then. A point
+outside the workspace or the stroke is reported on ``/diagnostics`` and in the log, and
+never sent.
 """
 
 from typing import Optional
@@ -16,12 +18,11 @@ from typing import Optional
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.errors import UnreachablePointError
 from flexure_ctrl.core.inverse import InverseSolver
+from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.nodes.common import (ACTUATOR_NAMES, COMMAND_TOPIC, declare_design,
-                                       DIAGNOSTICS_TOPIC, run_node, SETPOINTS_TOPIC)
-from flexure_ctrl.nodes.trajectory_generator import COMMAND_PATH_TOPIC, latched_qos
+                                       DIAGNOSTICS_TOPIC, run_node, RUN_STATUS_NAME, RUN_TOPIC,
+                                       SETPOINTS_TOPIC)
 from geometry_msgs.msg import PointStamped
-from nav_msgs.msg import Path
-import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
@@ -41,12 +42,12 @@ class InverseSolverNode(Node):
         self.solved = 0
         self.refused = 0
         self.last_problem = ''
-        self.path_problem = ''
         self.setpoint_publisher = self.create_publisher(JointState, SETPOINTS_TOPIC, 10)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                                            10)
         self.create_subscription(PointStamped, COMMAND_TOPIC, self._on_command, 10)
-        self.create_subscription(Path, COMMAND_PATH_TOPIC, self._on_path, latched_qos())
+        self.run_active = False
+        self.create_subscription(DiagnosticStatus, RUN_TOPIC, self._on_run, 10)
         self.create_timer(1.0, self._publish_diagnostics)
         self._setpoint = JointState()
         self._setpoint.name = list(ACTUATOR_NAMES)
@@ -56,26 +57,19 @@ class InverseSolverNode(Node):
         if self.design.warning:
             self.get_logger().warning(f'design {self.design.name}: {self.design.warning}')
 
-    def _on_path(self, message: Path) -> None:
-        points = np.array([[pose.pose.position.x, pose.pose.position.y]
-                           for pose in message.poses])
-        if len(points) == 0:
+    def _on_run(self, message: DiagnosticStatus) -> None:
+        if message.name != RUN_STATUS_NAME:
             return
         try:
-            solution = self.solver.solve(points)
-        except UnreachablePointError as error:
-            self.path_problem = f'planned path: {error}'
-            self.get_logger().error(self.path_problem)
-        else:
-            self.path_problem = ''
-            self.get_logger().info(
-                f'planned path of {len(points)} points solved ahead: actuator 1 '
-                f'{solution[:, 0].min() * 1e3:+.2f}..{solution[:, 0].max() * 1e3:+.2f} mm, '
-                f'actuator 2 {solution[:, 1].min() * 1e3:+.2f}..'
-                f'{solution[:, 1].max() * 1e3:+.2f} mm')
-        self._publish_diagnostics()
+            state = RunMessage.from_pairs((kv.key, kv.value) for kv in message.values).state
+        except ValueError:
+            return
+        self.run_active = state in (RunState.ARMING, RunState.RUNNING)
 
     def _on_command(self, message: PointStamped) -> None:
+        if self.run_active:
+            self._previous_point = None
+            return
         x_m, y_m = message.point.x, message.point.y
         stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
         velocity_m_s = (0.0, 0.0)
@@ -106,7 +100,7 @@ class InverseSolverNode(Node):
 
     def _publish_diagnostics(self) -> None:
         status = DiagnosticStatus(name=STATUS_NAME, hardware_id=self.design.name)
-        problem = self.path_problem or self.last_problem
+        problem = self.last_problem
         status.level = DiagnosticStatus.ERROR if problem else DiagnosticStatus.OK
         status.message = problem or 'solving'
         status.values = [KeyValue(key='design', value=self.design.name),

@@ -1,0 +1,279 @@
+"""
+The actuator loop node's parameters, its loop thread and what it reports.
+
+Kept apart from :mod:`flexure_ctrl.nodes.actuator_loop` so that the node itself only
+wires topics, services and the drive to :class:`~flexure_ctrl.core.ploop.ActuatorController`.
+"""
+
+from dataclasses import dataclass
+import enum
+import math
+import os
+import threading
+import time
+from typing import Callable, List, Optional, Tuple, Type
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from flexure_ctrl.core.drive_client import DriveClient
+from flexure_ctrl.core.ploop import ActuatorController
+from flexure_ctrl.core.run import ACTUATOR_NAMES, Following, LoopStatus
+from flexure_ctrl.nodes.common import float_descriptor, int_descriptor, typed_descriptor
+import numpy as np
+from rcl_interfaces.msg import ParameterType
+from rclpy.exceptions import ParameterUninitializedException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+_NS_PER_S = 1_000_000_000
+_STRING = ParameterType.PARAMETER_STRING
+_BOOL = ParameterType.PARAMETER_BOOL
+
+
+class Mode(enum.Enum):
+    """The drive side of a loop; every mode but RUNNING sends no velocity commands."""
+
+    CONNECTING = 'connecting'
+    RUNNING = 'running'
+    QUICK_STOPPED = 'quick stop latched'
+    FAULTED = 'fault latched'
+    STOPPED = 'stopped'
+
+
+# (name, default, description, low, high, live): every ranged parameter of the loop.
+# Read-only unless live.
+_RANGED = (
+    ('can.port', 29536, 'socketcand server TCP port (socketcand only)', 1, 65535, False),
+    ('node_id', 1, 'CANopen node id of the drive', 1, 127, False),
+    ('counts_per_m', 1e6, 'drive position counts per m (velocity: counts/s per m/s)',
+     1.0, 1e9, False),
+    ('rate_hz', 500, 'loop rate (Hz)', 10, 2000, False),
+    ('gain_per_s', 20.0, 'proportional gain (1/s): m/s of command per m of error; may '
+     'change live', 0.0, 200.0, True),
+    ('velocity_feedforward', 1.0, 'fraction of the setpoint velocity fed forward; may '
+     'change live', 0.0, 1.0, True),
+    ('max_speed_m_s', 0.02, 'velocity command limit (m/s)', 1e-4, 0.5, False),
+    ('watchdog_timeout_s', 0.25, "largest age (s) of the run owner's word during a run "
+     '(it speaks every 0.05 s) and of a jog setpoint, before ramping to zero velocity',
+     0.005, 10.0, False),
+    ('setpoint_hold_max_age_s', 0.03, 'longest extrapolation (s) of a jog setpoint along '
+     'its velocity between arrivals; 0 holds it still', 0.0, 1.0, False),
+    ('watchdog_decel_m_s2', 1.0, 'deceleration (m/s^2) of the ramp to zero velocity that '
+     'ends every stop', 1e-3, 100.0, False),
+    ('path_tolerance_m', 0.002, 'largest |potentiometer - plan| (m) from path time zero '
+     'on; beyond it the run ends on both actuators', 1e-5, 0.1, False),
+    ('heartbeat_timeout_s', 0.5, 'largest gap (s) between drive heartbeats (and position '
+     'TPDOs)', 0.01, 10.0, False),
+    ('realtime_priority', 0, 'SCHED_FIFO priority of the loop thread (1-98; 0: ordinary '
+     'scheduling). Needs CAP_SYS_NICE or an rtprio limit; without it the node warns and '
+     'runs anyway', 0, 98, False),
+    ('connect_timeout_s', 10.0, 'how long (s) to keep retrying the bus and the drive at '
+     'start-up', 0.0, 3600.0, False),
+)
+_TYPED = (
+    ('actuator', '', _STRING, 'which actuator this loop drives: ' + ' or '.join(ACTUATOR_NAMES)),
+    ('can.interface', 'socketcan', _STRING,
+     'python-can interface: socketcan (rig), socketcand (simulated rig), virtual (tests)'),
+    ('can.channel', 'can0', _STRING, 'CAN channel (socketcand: the bus name the server serves)'),
+    ('can.host', '127.0.0.1', _STRING, 'socketcand server host (socketcand only)'),
+    ('compensate_reading_age', True, _BOOL,
+     'compare each potentiometer reading with the setpoint of the time its TPDO was received '
+     '(the CAN frame timestamp, system clock) instead of the setpoint of now'),
+)
+
+
+@dataclass(frozen=True)
+class LoopParameters:
+    """The loop's parameter values, read once at start."""
+
+    actuator: str
+    can_interface: str
+    can_channel: str
+    can_host: str
+    can_port: int
+    node_id: int
+    counts_per_m: float
+    rate_hz: int
+    gain_per_s: float
+    velocity_feedforward: float
+    max_speed_m_s: float
+    watchdog_timeout_s: float
+    setpoint_hold_max_age_s: float
+    watchdog_decel_m_s2: float
+    path_tolerance_m: float
+    heartbeat_timeout_s: float
+    realtime_priority: int
+    connect_timeout_s: float
+    compensate_reading_age: bool
+    stroke_limit_m: float
+
+
+def declare_loop_parameters(node: Node, error: Type[Exception]) -> LoopParameters:
+    """
+    Declare the loop's parameters on ``node`` and read them.
+
+    :raises error: the actuator name is unknown or the stroke limit is not set.
+    """
+    for name, default, description, low, high, live in _RANGED:
+        make = int_descriptor if isinstance(default, int) else float_descriptor
+        node.declare_parameter(name, default, make(description, low, high,
+                                                   read_only=not live))
+    for name, default, parameter_type, description in _TYPED:
+        node.declare_parameter(name, default, typed_descriptor(parameter_type, description,
+                                                               read_only=True))
+    node.declare_parameter('design.stroke_limit_m', Parameter.Type.DOUBLE, float_descriptor(
+        'symmetric actuator stroke limit (m), from the design YAML', 1e-4, 1.0,
+        read_only=True))
+    value = {name.replace('.', '_'): node.get_parameter(name).value
+             for name, *_ in _RANGED + _TYPED}
+    try:
+        value['stroke_limit_m'] = node.get_parameter('design.stroke_limit_m').value
+    except ParameterUninitializedException:
+        raise error('parameter design.stroke_limit_m is not set: pass the design YAML with '
+                    '--params-file (or -p design.stroke_limit_m:=<m>)') from None
+    if value['actuator'] not in ACTUATOR_NAMES:
+        raise error(f'parameter actuator must be one of {", ".join(ACTUATOR_NAMES)}, '
+                    f'got {value["actuator"]!r}')
+    return LoopParameters(**value)
+
+
+class LoopThread:
+    """
+    Call ``cycle()`` with ``lock`` held once per period, on absolute monotonic deadlines.
+
+    A cycle more than a period late starts afresh instead of a burst (an overrun). The
+    periods of the last second are kept for the diagnostics.
+    """
+
+    def __init__(self, rate_hz: int, cycle: Callable[[], None], lock: threading.RLock,
+                 realtime_priority: int, logger, name: str,
+                 on_error: Callable[[], None]) -> None:
+        self.period_ns = _NS_PER_S // rate_hz
+        self._cycle = cycle
+        self._lock = lock
+        self._priority = realtime_priority
+        self._logger = logger
+        self._on_error = on_error
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name=name)
+        self.overruns = 0
+        self._periods_ns = np.zeros(max(2, rate_hz), dtype=np.int64)
+        self._count = 0
+
+    @property
+    def alive(self) -> bool:
+        """Whether the thread runs."""
+        return self._thread.is_alive()
+
+    def start(self) -> None:
+        """Start cycling."""
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop cycling and wait (1 s at most) for the cycle in progress; idempotent."""
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(1.0)
+
+    def period_stats_ms(self) -> Tuple[float, float]:
+        """Median and 99th percentile (ms) of the loop period over the last second."""
+        count = min(self._count, self._periods_ns.shape[0])
+        if count == 0:
+            return math.nan, math.nan
+        median, p99 = np.percentile(self._periods_ns[:count] / 1e6, (50.0, 99.0))
+        return float(median), float(p99)
+
+    def _run(self) -> None:
+        self._set_realtime_priority()
+        try:
+            self._loop()
+        except BaseException:
+            # The exception ends the thread (threading.excepthook prints it): command
+            # nothing more, and say so.
+            with self._lock:
+                self._on_error()
+            raise
+
+    def _set_realtime_priority(self) -> None:
+        """Give this thread SCHED_FIFO if asked; other threads keep theirs."""
+        if not self._priority:
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self._priority))
+        except (PermissionError, AttributeError, OSError) as error:
+            self._logger.warning(f'realtime_priority {self._priority} not granted ({error}); '
+                                 'the loop runs with ordinary scheduling and more jitter')
+            return
+        self._logger.info(f'loop thread runs SCHED_FIFO at priority {self._priority}')
+
+    def _loop(self) -> None:
+        period_ns = self.period_ns
+        stop = self._stop
+        next_ns = last_ns = time.monotonic_ns()
+        while True:
+            next_ns += period_ns
+            delay_ns = next_ns - time.monotonic_ns()
+            if delay_ns > 0:
+                if stop.wait(delay_ns / _NS_PER_S):
+                    return
+            elif stop.is_set():
+                return
+            elif delay_ns < -period_ns:
+                self.overruns += 1
+                next_ns = time.monotonic_ns()
+            with self._lock:
+                if stop.is_set():
+                    return
+                now_ns = time.monotonic_ns()
+                self._periods_ns[self._count % self._periods_ns.shape[0]] = now_ns - last_ns
+                self._count += 1
+                last_ns = now_ns
+                self._cycle()
+
+
+def status_of(mode: Mode, problem: str, controller: ActuatorController) -> LoopStatus:
+    """Return the loop's word to the run owner."""
+    return LoopStatus(ready=mode is Mode.RUNNING,
+                      trajectory_stamp_ns=controller.loaded_stamp_ns,
+                      following=controller.following,
+                      problem=problem if mode is not Mode.RUNNING else controller.problem)
+
+
+def level_of(mode: Mode, status: LoopStatus) -> bytes:
+    """Diagnostic level: ERROR on a problem, WARN on a requested quick stop or a stop."""
+    if mode is Mode.QUICK_STOPPED:
+        return DiagnosticStatus.WARN
+    if status.problem or mode is not Mode.RUNNING:
+        return DiagnosticStatus.ERROR
+    if status.following is Following.STOPPING:
+        return DiagnosticStatus.WARN
+    return DiagnosticStatus.OK
+
+
+def diagnostic_values(mode: Mode, client: Optional[DriveClient],
+                      controller: ActuatorController, thread: LoopThread,
+                      position_stale: bool) -> List[Tuple[str, str]]:
+    """Key-value pairs for ``/diagnostics`` beside the status."""
+    median_ms, p99_ms = thread.period_stats_ms()
+    if client is None:
+        position = 'unknown'
+    else:
+        position = f'{client.position_m:.6f}' + (' (stale)' if position_stale else '')
+    return [
+        ('mode', mode.value),
+        ('drive state', client.state.value if client and client.state else 'unknown'),
+        ('nmt state', client.nmt_state.name if client and client.nmt_state else 'unknown'),
+        ('position (m)', position),
+        ('commanded velocity (m/s)', f'{client.commanded_velocity_m_s:.6f}' if client
+         else '0'),
+        ('setpoint (m)', f'{controller.setpoint_m:.6f}'),
+        ('stop reason', controller.stop_reason or 'none'),
+        ('largest path deviation of the run (m)', f'{controller.max_deviation_m:.6f}'),
+        ('loop period median (ms)', f'{median_ms:.3f}'),
+        ('loop period p99 (ms)', f'{p99_ms:.3f}'),
+        ('loop overruns', str(thread.overruns)),
+        ('jog setpoints ignored during a run', str(controller.stream_ignored)),
+        ('jog setpoints stale', str(controller.stream_stale)),
+        ('setpoint clamps', str(controller.loop.clamp_count)),
+        ('last emergency', f'0x{client.emergencies[-1][1].error_code:04X}'
+         if client and client.emergencies else 'none'),
+    ]
