@@ -16,7 +16,7 @@ import uuid
 from builtin_interfaces.msg import Duration
 import can
 from conftest import TickedDrive
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState
 from flexure_ctrl.core.run import Following, LoopStatus, RunMessage, RunState
@@ -25,6 +25,7 @@ from flexure_ctrl.nodes.actuator_loop import ActuatorLoop, ActuatorLoopConfigErr
 from flexure_ctrl.nodes.actuator_loop import DriveConnectError, Mode
 from flexure_ctrl.nodes.common import actuator_state_topic, DIAGNOSTICS_TOPIC
 from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
+from flexure_ctrl.nodes.run_messages import pairs_of, word_message
 import numpy as np
 import pytest
 import rclpy
@@ -73,8 +74,8 @@ class Harness:
         self.statuses: List[LoopStatus] = []
         self.helper.create_subscription(
             DiagnosticStatus, common.actuator_status_topic(ACTUATOR),
-            lambda m: self.statuses.append(LoopStatus.from_pairs(
-                (kv.key, kv.value) for kv in m.values)), common.latched_qos())
+            lambda m: self.statuses.append(LoopStatus.from_pairs(pairs_of(m))),
+            common.latched_qos())
         self.trajectory_publisher = self.helper.create_publisher(
             JointTrajectory, common.TRAJECTORY_TOPIC, common.latched_qos())
         self.run_publisher = self.helper.create_publisher(DiagnosticStatus, common.RUN_TOPIC, 10)
@@ -114,9 +115,8 @@ class Harness:
 
     def _say_run(self) -> None:
         if self.run is not None:
-            self.run_publisher.publish(DiagnosticStatus(
-                name=common.RUN_STATUS_NAME,
-                values=[KeyValue(key=k, value=v) for k, v in self.run.to_pairs()]))
+            self.run_publisher.publish(word_message(common.RUN_STATUS_NAME,
+                                                    self.run.to_pairs()))
 
     def publish_plan(self, times_s, positions_m, velocities_m_s, lead_in_s: float) -> int:
         """Publish a one-joint plan due ``lead_in_s`` from now; return its stamp (ns)."""

@@ -130,9 +130,16 @@ def test_refuses_while_another_node_commands(rig, tmp_path):
         rig['node'].destroy_publisher(publisher)
 
 
+def points_so_far(csv_path) -> int:
+    """Count the points of a CSV still being written (0 while its header is not in)."""
+    try:
+        return len(read_points_csv(csv_path))
+    except (FileNotFoundError, TypeError):
+        return 0  # not there yet, or read between its creation and its header
+
+
 def wait_for_two_points(csv_path):
-    wait_for(lambda: csv_path.exists() and len(read_points_csv(csv_path)) >= 2, 60,
-             'two points')
+    wait_for(lambda: points_so_far(csv_path) >= 2, 60, 'two points')
 
 
 def assert_aborted_with_points_and_stopped(rig, process, output, out, reason):

@@ -26,6 +26,7 @@ from flexure_ctrl.core.characterisation import measured_design, summarise
 from flexure_ctrl.core.characterisation import write_design_yaml
 from flexure_ctrl.core.design import find_config_file, load_design
 from flexure_ctrl.core.run import RunMessage, RunState
+from flexure_ctrl.nodes.run_messages import pairs_of
 from geometry_msgs.msg import PointStamped
 import numpy as np
 import pytest
@@ -270,7 +271,7 @@ STATE_TOPICS = [(f'/flexure/{actuator}/state', JointState)
 
 def run_words(rig):
     """Return the run owner's words the probe has heard, as (arrival s, RunMessage)."""
-    return [(t, RunMessage.from_pairs((kv.key, kv.value) for kv in m.values))
+    return [(t, RunMessage.from_pairs(pairs_of(m)))
             for t, m in rig.received['/flexure/run']]
 
 
@@ -366,19 +367,24 @@ def test_the_stop_service_leaves_both_actuators_holding(rig_factory):
 
 
 def test_autostart_starts_only_once_both_loops_run(rig_factory):
-    rig = rig_factory(STATE_TOPICS + [('/flexure/run', DiagnosticStatus)],
-                      extra_arguments=('--autostart',))
+    rig = rig_factory([('/flexure/run', DiagnosticStatus)], extra_arguments=('--autostart',))
     assert rig.spin_until(lambda: any(w.state is RunState.RUNNING for _, w in run_words(rig)),
                           90.0), rig.problems()
-    armed_s = min(t for t, w in run_words(rig) if w.state is not RunState.IDLE)
-    # up starts actuator_2 only once actuator_1 is up: the later one's first state (its
-    # loop running) comes before the run is armed, and nothing moved before.
-    first_state_s = {a: min(t for t, _ in rig.received[f'/flexure/{a}/state'])
-                     for a in ('actuator_1', 'actuator_2')}
-    assert first_state_s['actuator_1'] < first_state_s['actuator_2'] < armed_s
-    for actuator in ('actuator_1', 'actuator_2'):
-        assert all(m.velocity[0] == 0.0 for t, m in rig.received[f'/flexure/{actuator}/state']
-                   if t < armed_s)
+
+    def logged_s(process, text):
+        """Return the ROS log stamp (s, system clock) of a process's first line with text."""
+        for line in rig.lines:
+            match = re.match(rf'\[{process}\] \[\w+\] \[(\d+\.\d+)\]', line)
+            if match and text in line:
+                return float(match.group(1))
+        raise AssertionError(f'{process} never logged {text!r}:\n' + '\n'.join(rig.lines))
+
+    # up starts actuator_2 once actuator_1 is up, seconds after the generator: the run is
+    # armed only after the later drive is enabled, by the generator's own word.
+    enabled_s = [logged_s(a, 'operation enabled') for a in ('actuator_1', 'actuator_2')]
+    generator_up_s = logged_s('trajectory_generator', 'call ~/start')
+    armed_s = logged_s('trajectory_generator', 'run arming')
+    assert generator_up_s < enabled_s[0] < enabled_s[1] < armed_s
     assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
 
 

@@ -2,7 +2,7 @@
 
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core.design import find_design_file, load_design
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.kinematics import TwoLinkArm
@@ -11,6 +11,7 @@ from flexure_ctrl.core.trajectory import SinePath
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.common import COMMAND_TOPIC, DEMAND_TOPIC, latched_qos, SETPOINTS_TOPIC
 from flexure_ctrl.nodes.inverse_solver import InverseSolverNode
+from flexure_ctrl.nodes.run_messages import pairs_of, word_message
 from flexure_ctrl.nodes.trajectory_generator import TrajectoryGenerator
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Path
@@ -66,6 +67,14 @@ class Harness:
         assert self.spin_until(lambda: not generator.supervisor.not_ready())
         generator.start_run()
 
+    def call(self, service):
+        """Call a Trigger service once it is up; return its answer."""
+        client = self.probe.create_client(Trigger, service)
+        assert self.spin_until(client.service_is_ready)
+        future = client.call_async(Trigger.Request())
+        assert self.spin_until(future.done)
+        return future.result()
+
     def fake_loops(self):
         """Stand-ins for both actuator loops: ready, and holding each plan they are sent."""
         return FakeLoops(self.probe)
@@ -91,7 +100,7 @@ class FakeLoops:
         node.create_subscription(JointTrajectory, common.TRAJECTORY_TOPIC, self._on_plan,
                                  latched_qos())
         node.create_subscription(DiagnosticStatus, common.RUN_TOPIC, lambda m: self.runs.append(
-            (time.monotonic(), RunMessage.from_pairs((kv.key, kv.value) for kv in m.values))),
+            (time.monotonic(), RunMessage.from_pairs(pairs_of(m)))),
             100)
         for name in ACTUATOR_NAMES:
             self.say(name)
@@ -99,9 +108,8 @@ class FakeLoops:
     def say(self, name, **changes):
         for key, value in changes.items():
             setattr(self.status[name], key, value)
-        self.publishers[name].publish(DiagnosticStatus(
-            name=f'flexure_ctrl/{name}',
-            values=[KeyValue(key=k, value=v) for k, v in self.status[name].to_pairs()]))
+        self.publishers[name].publish(word_message(f'flexure_ctrl/{name}',
+                                                   self.status[name].to_pairs()))
 
     def _on_plan(self, message):
         self.plans.append(message)
@@ -172,8 +180,7 @@ def test_setpoints_realise_the_command_through_the_table(harness_factory):
     velocities = np.array([s.velocity for s in setpoints])
     assert np.abs(velocities).max() > 0.01
     # While a run lasts, command points are left to the run's plan: no setpoints.
-    run.publish(DiagnosticStatus(name=common.RUN_STATUS_NAME, values=[
-        KeyValue(key=k, value=v) for k, v in RunMessage(RunState.RUNNING, 5).to_pairs()]))
+    run.publish(word_message(common.RUN_STATUS_NAME, RunMessage(RunState.RUNNING, 5).to_pairs()))
     assert harness.spin_until(lambda: solver.run_active)
     count = len(setpoints)
     for k in range(10):
@@ -293,15 +300,12 @@ def test_start_waits_for_both_loops_and_refuses_when_one_is_not_ready(harness_fa
     loops = harness.fake_loops()
     loops.say('actuator_2', ready=False, problem='not connected yet')
     generator = harness.add(TrajectoryGenerator(context=harness.context))
-    start = harness.probe.create_client(Trigger, '/trajectory_generator/start')
-    assert harness.spin_until(start.service_is_ready)
-    future = start.call_async(Trigger.Request())
-    assert harness.spin_until(future.done)
-    assert not future.result().success
-    assert future.result().message == \
-        'not started: actuator_2 is not ready: not connected yet'
+    response = harness.call('/trajectory_generator/start')
+    assert not response.success
+    assert response.message == 'not started: actuator_2 is not ready: not connected yet'
     assert loops.plans == [] and generator.supervisor.state is RunState.IDLE
     # Ready within the wait: it starts.
+    start = harness.probe.create_client(Trigger, '/trajectory_generator/start')
     future = start.call_async(Trigger.Request())
     harness.spin_until(lambda: False, timeout_s=0.2)
     loops.say('actuator_2', ready=True, problem='')
@@ -314,18 +318,14 @@ def test_a_loop_that_does_not_take_the_plan_or_reports_a_problem_ends_the_run(ha
     loops = harness.fake_loops()
     loops.hold_plans = False
     generator = harness.add(TrajectoryGenerator(context=harness.context))
-    start = harness.probe.create_client(Trigger, '/trajectory_generator/start')
-    assert harness.spin_until(start.service_is_ready)
-    future = start.call_async(Trigger.Request())
-    assert harness.spin_until(future.done)
-    assert not future.result().success
+    response = harness.call('/trajectory_generator/start')
+    assert not response.success
     assert 'actuator_1, actuator_2 did not take the trajectory within 0.3 s' in \
-        future.result().message
+        response.message
     assert loops.runs[-1][1].state is RunState.ABORTED
     # A fault on one loop mid-run aborts it for both, with the reason.
     loops.hold_plans = True
-    future = start.call_async(Trigger.Request())
-    assert harness.spin_until(future.done) and future.result().success
+    assert harness.call('/trajectory_generator/start').success
     loops.say('actuator_2', ready=False, problem='DriveFaultError: drive 2: emergency')
     assert harness.spin_until(lambda: loops.runs[-1][1].state is RunState.ABORTED)
     assert loops.runs[-1][1].reason == 'actuator_2: DriveFaultError: drive 2: emergency'

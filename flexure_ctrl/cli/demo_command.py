@@ -156,6 +156,7 @@ class _Operator:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticStatus
         from flexure_ctrl.nodes.common import RUN_STATUS_NAME, RUN_TOPIC
+        from flexure_ctrl.nodes.run_messages import pairs_of
         from rclpy.executors import SingleThreadedExecutor
 
         self._rclpy = rclpy
@@ -168,7 +169,7 @@ class _Operator:
         def on_run(message) -> None:
             if message.name == RUN_STATUS_NAME:
                 with self._run_changed:
-                    self.run = RunMessage.from_pairs((kv.key, kv.value) for kv in message.values)
+                    self.run = RunMessage.from_pairs(pairs_of(message))
                     self._run_changed.notify_all()
 
         self.node.create_subscription(DiagnosticStatus, RUN_TOPIC, on_run, 10)

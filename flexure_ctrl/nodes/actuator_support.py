@@ -6,7 +6,6 @@ wires topics, services and the drive to :class:`~flexure_ctrl.core.ploop.Actuato
 """
 
 from dataclasses import dataclass
-import enum
 import math
 import os
 import threading
@@ -14,6 +13,7 @@ import time
 from typing import Callable, List, Optional, Tuple, Type
 
 from diagnostic_msgs.msg import DiagnosticStatus
+from flexure_ctrl.core.actuator_drive import Mode
 from flexure_ctrl.core.drive_client import DriveClient
 from flexure_ctrl.core.ploop import ActuatorController
 from flexure_ctrl.core.run import ACTUATOR_NAMES, Following, LoopStatus
@@ -27,16 +27,6 @@ from rclpy.parameter import Parameter
 _NS_PER_S = 1_000_000_000
 _STRING = ParameterType.PARAMETER_STRING
 _BOOL = ParameterType.PARAMETER_BOOL
-
-
-class Mode(enum.Enum):
-    """The drive side of a loop; every mode but RUNNING sends no velocity commands."""
-
-    CONNECTING = 'connecting'
-    RUNNING = 'running'
-    QUICK_STOPPED = 'quick stop latched'
-    FAULTED = 'fault latched'
-    STOPPED = 'stopped'
 
 
 # (name, default, description, low, high, live): every ranged parameter of the loop.

@@ -22,6 +22,7 @@ from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.nodes.common import (ACTUATOR_NAMES, COMMAND_TOPIC, declare_design,
                                        DIAGNOSTICS_TOPIC, run_node, RUN_STATUS_NAME, RUN_TOPIC,
                                        SETPOINTS_TOPIC)
+from flexure_ctrl.nodes.run_messages import pairs_of
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -61,7 +62,7 @@ class InverseSolverNode(Node):
         if message.name != RUN_STATUS_NAME:
             return
         try:
-            state = RunMessage.from_pairs((kv.key, kv.value) for kv in message.values).state
+            state = RunMessage.from_pairs(pairs_of(message)).state
         except ValueError:
             return
         self.run_active = state in (RunState.ARMING, RunState.RUNNING)

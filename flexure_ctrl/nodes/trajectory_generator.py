@@ -28,8 +28,8 @@ stamp path time zero: a recording of the run is aligned with its path by these.
 
 import math
 
-from builtin_interfaces.msg import Duration, Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.inverse import InverseSolver
 from flexure_ctrl.core.run import LoopStatus, RunSupervisor
@@ -37,6 +37,7 @@ from flexure_ctrl.core.run import NS_PER_S, plan_path, PlanError, RunRefusedErro
 from flexure_ctrl.core.trajectory import SinePath, WaypointPath
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.common import float_descriptor, typed_descriptor
+from flexure_ctrl.nodes.run_messages import pairs_of, plan_to_message, word_message
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import ParameterType, SetParametersResult
@@ -44,7 +45,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 from std_srvs.srv import Trigger
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from trajectory_msgs.msg import JointTrajectory
 
 PATH_PREVIEW_RATE_HZ = 50.0
 STATUS_NAME = 'flexure_ctrl/trajectory_generator'
@@ -168,15 +169,7 @@ class TrajectoryGenerator(Node):
             plan = plan_path(command, self.solver, value('plan_rate_hz'))
         except PlanError as error:
             raise FlexureCtrlError(f'{source}: plan refused at {error}') from None
-        message = JointTrajectory(joint_names=list(plan.joint_names))
-        for t_s, positions, velocities in zip(plan.times_s, plan.positions_m,
-                                              plan.velocities_m_s):
-            nanoseconds = int(round(t_s * 1e9))
-            message.points.append(JointTrajectoryPoint(
-                positions=positions.tolist(), velocities=velocities.tolist(),
-                time_from_start=Duration(sec=nanoseconds // NS_PER_S,
-                                         nanosec=nanoseconds % NS_PER_S)))
-        return demand, command, message
+        return demand, command, plan_to_message(plan)
 
     def _on_set_parameters(self, parameters):
         """Load a new correction file between runs; refuse it during one, or if bad."""
@@ -266,7 +259,7 @@ class TrajectoryGenerator(Node):
 
     def _on_status(self, actuator: str, message: DiagnosticStatus) -> None:
         try:
-            status = LoopStatus.from_pairs((kv.key, kv.value) for kv in message.values)
+            status = LoopStatus.from_pairs(pairs_of(message))
         except ValueError:
             return
         if self.supervisor.update_status(actuator, status):
@@ -286,9 +279,8 @@ class TrajectoryGenerator(Node):
     def _run_message(self) -> DiagnosticStatus:
         run = self.supervisor.message()
         level = DiagnosticStatus.ERROR if run.state is RunState.ABORTED else DiagnosticStatus.OK
-        return DiagnosticStatus(level=level, name=common.RUN_STATUS_NAME,
-                                message=run.reason or run.state.value,
-                                values=[KeyValue(key=k, value=v) for k, v in run.to_pairs()])
+        return word_message(common.RUN_STATUS_NAME, run.to_pairs(), level,
+                            run.reason or run.state.value)
 
     def _run_changed(self) -> None:
         """Say the run's new state at once, to the loops, the log and /diagnostics."""
@@ -333,11 +325,9 @@ class TrajectoryGenerator(Node):
         supervisor = self.supervisor
         problem = problem or (supervisor.reason if supervisor.state is RunState.ABORTED
                               else '')
-        status = DiagnosticStatus(
-            name=STATUS_NAME, hardware_id=self.design.name,
-            level=DiagnosticStatus.ERROR if problem else DiagnosticStatus.OK,
-            message=problem or f'run {supervisor.state.value}',
-            values=[KeyValue(key=k, value=v) for k, v in supervisor.message().to_pairs()])
+        status = word_message(STATUS_NAME, supervisor.message().to_pairs(),
+                              DiagnosticStatus.ERROR if problem else DiagnosticStatus.OK,
+                              problem or f'run {supervisor.state.value}', self.design.name)
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)

@@ -1,0 +1,139 @@
+"""
+One actuator loop's link to its drive: the bus and the drive client, brought up and down.
+
+:class:`DriveLink` opens the bus and starts the drive (CiA 402 to Operation Enabled),
+retrying until a deadline at start-up; a bus that failed is replaced by a new one on
+the next try, a drive that did not answer is tried again on the same bus. Time is passed
+in (integer ns of a monotonic clock). Not thread-safe: the caller orders its calls.
+"""
+
+import logging
+import socket
+from typing import Optional
+
+import can
+from flexure_ctrl.core.drive_client import DriveClient, DriveError
+from flexure_ctrl.core.errors import FlexureCtrlError
+
+_NS_PER_S = 1_000_000_000
+INTERFACES_WITH_HOST = ('socketcand',)
+
+
+class DriveConnectError(FlexureCtrlError, RuntimeError):
+    """The bus or the drive could not be brought up within the connect timeout."""
+
+
+def open_bus(interface: str, channel: str, host: str = '127.0.0.1',
+             port: int = 29536) -> can.BusABC:
+    """
+    Open a python-can bus.
+
+    ``socketcan`` on the rig, ``socketcand`` against the simulated rig (``host``,
+    ``port``), ``virtual`` in one process.
+
+    :raises OSError: the socketcand server does not accept a connection.
+    :raises can.CanError: python-can could not open the bus.
+    """
+    if interface in INTERFACES_WITH_HOST:
+        # python-can's socketcand client retries a refused connect in a busy loop for
+        # 10 s; probe first so a server that is not up yet costs one quick failure.
+        with socket.create_connection((host, port), timeout=1.0):
+            pass
+        # It also warns whenever a TCP read ends inside a frame, which is normal.
+        logging.getLogger('can.socketcand').setLevel(logging.ERROR)
+        return can.Bus(interface=interface, channel=channel, host=host, port=port,
+                       tcp_tune=True)
+    return can.Bus(interface=interface, channel=channel)
+
+
+class DriveLink:
+    """
+    The bus and the drive client of one loop, up until :meth:`close`.
+
+    :param interface: python-can interface (see :func:`open_bus`).
+    :param channel: CAN channel.
+    :param host: socketcand server host.
+    :param port: socketcand server port.
+    :param node_id: CANopen node id of the drive.
+    :param counts_per_m: drive position counts per m.
+    :param heartbeat_timeout_s: largest gap between drive heartbeats (s).
+    :param connect_timeout_s: how long (s) to keep trying at start-up.
+    :param retry_s: time (s) between two tries.
+    :param attempt_s: longest single try (s); the caller's thread waits that long.
+    """
+
+    def __init__(self, interface: str, channel: str, host: str, port: int, node_id: int,
+                 counts_per_m: float, heartbeat_timeout_s: float, connect_timeout_s: float,
+                 retry_s: float = 0.2, attempt_s: float = 0.3) -> None:
+        self._bus_arguments = (interface, channel, host, port)
+        self._client_arguments = (node_id, counts_per_m, heartbeat_timeout_s)
+        self.connect_timeout_s = connect_timeout_s
+        self._retry_ns = int(retry_s * _NS_PER_S)
+        self._attempt_s = attempt_s
+        self.bus: Optional[can.BusABC] = None
+        self.client: Optional[DriveClient] = None
+        self.problem = 'not connected yet'
+        self._deadline_ns: Optional[int] = None
+        self._next_try_ns = 0
+
+    def try_connect(self, now_ns: int) -> Optional[bool]:
+        """
+        Try the bus and the drive once, if a try is due.
+
+        :returns: True once the drive is enabled; False after a failed try (then
+            :attr:`problem` says why); None when no try was due.
+        :raises DriveConnectError: still failing at ``connect_timeout_s``.
+        """
+        if now_ns < self._next_try_ns:
+            return None
+        self._next_try_ns = now_ns + self._retry_ns
+        if self._deadline_ns is None:
+            self._deadline_ns = now_ns + int(self.connect_timeout_s * _NS_PER_S)
+        remaining_s = (self._deadline_ns - now_ns) / _NS_PER_S
+        try:
+            if self.bus is None:
+                self.bus = open_bus(*self._bus_arguments)
+            if self.client is None:
+                node_id, counts_per_m, heartbeat_timeout_s = self._client_arguments
+                self.client = DriveClient(self.bus, node_id, counts_per_m=counts_per_m,
+                                          heartbeat_timeout_s=heartbeat_timeout_s)
+            self.client.start(timeout_s=max(0.05, min(self._attempt_s, remaining_s)))
+        except (can.CanError, OSError, DriveError, ValueError) as error:
+            text = f'{type(error).__name__}: {error}'
+            if not isinstance(error, DriveError):
+                # The bus itself failed: open a fresh one next time.
+                self.client = None
+                self._close_bus()
+            if remaining_s <= 0.0:
+                self.problem = f'not connected after {self.connect_timeout_s} s: {text}'
+                raise DriveConnectError(self.problem) from error
+            self.problem = f'not connected: {text}'
+            return False
+        self.problem = ''
+        return True
+
+    def close(self, confirm_timeout_s: float) -> Optional[bool]:
+        """
+        Leave a started drive disabled at zero velocity, then close the bus; idempotent.
+
+        :returns: whether the drive confirmed it is disabled; None if it was never started.
+        :raises can.CanError, OSError: the disable could not be sent (the bus is closed
+            all the same).
+        """
+        client, self.client = self.client, None
+        try:
+            if client is None or not client.started:
+                return None
+            return client.disable(confirm_timeout_s=confirm_timeout_s)
+        finally:
+            if client is not None:
+                client.shutdown()
+            self._close_bus()
+
+    def _close_bus(self) -> None:
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            try:
+                bus.shutdown()
+            except (can.CanError, OSError):
+                pass
