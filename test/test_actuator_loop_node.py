@@ -9,6 +9,8 @@ conditions, never on fixed sleeps.
 """
 
 import math
+import os
+import threading
 import time
 from typing import Callable, Iterator, List, Optional, Tuple
 import uuid
@@ -23,6 +25,7 @@ from flexure_ctrl.core.run import Following, LoopStatus, RunMessage, RunState
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.actuator_loop import ActuatorLoop, ActuatorLoopConfigError
 from flexure_ctrl.nodes.actuator_loop import DriveConnectError, Mode
+from flexure_ctrl.nodes.actuator_support import apply_thread_scheduling
 from flexure_ctrl.nodes.common import actuator_state_topic, DIAGNOSTICS_TOPIC
 from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
 from flexure_ctrl.nodes.run_messages import pairs_of, word_message
@@ -532,3 +535,62 @@ def test_a_drive_that_stops_answering_is_reported_and_its_position_marked_stale(
     count = len(harness.states)
     harness.spin_for(0.3)
     assert len(harness.states) == count
+
+
+class ListLogger:
+    """Collects what is logged, by level."""
+
+    def __init__(self):
+        self.lines = []
+
+    def warning(self, text):
+        self.lines.append(('warning', text))
+
+    def info(self, text):
+        self.lines.append(('info', text))
+
+
+def test_thread_scheduling_that_is_granted_is_applied():
+    logger = ListLogger()
+    result = []
+    core = sorted(os.sched_getaffinity(0))[-1]
+
+    def pinned():
+        result.extend(apply_thread_scheduling((core,), 0, logger))
+        result.append(os.sched_getaffinity(0))
+
+    thread = threading.Thread(target=pinned)
+    thread.start()
+    thread.join()
+    assert result == [f'cores [{core}]', 'ordinary scheduling', {core}]
+    assert logger.lines == [('info', f'loop thread: cores [{core}], ordinary scheduling')]
+    assert len(os.sched_getaffinity(0)) == os.cpu_count()  # other threads keep theirs
+
+
+def test_thread_scheduling_not_granted_is_refused_by_name(monkeypatch):
+    def refuse(*_):
+        raise PermissionError(1, 'Operation not permitted')
+
+    monkeypatch.setattr(os, 'sched_setscheduler', refuse)
+    logger = ListLogger()
+    result = apply_thread_scheduling((4096,), 50, logger)
+    assert result == ['any core (cpu_affinity [4096] not granted)',
+                      'ordinary scheduling (realtime_priority 50 not granted)']
+    warnings = [text for level, text in logger.lines if level == 'warning']
+    assert warnings[0].startswith('cpu_affinity [4096] not granted (')
+    assert warnings[1].startswith('realtime_priority 50 not granted ([Errno 1] Operation not '
+                                  'permitted): grant CAP_SYS_NICE or an rtprio limit')
+
+
+@pytest.mark.parametrize('watchdog_args', [('-p', 'cpu_affinity:=[4096]')])
+def test_a_loop_whose_scheduling_is_not_granted_runs_anyway(running, rig):
+    harness = running
+    harness.follow(lambda t: (0.003, 0.0))
+    harness.spin_until(lambda: abs(rig.actuator.rod_position_m - 0.003) < 1e-4, 3.0,
+                       'following')
+    harness.spin_until(lambda: {kv.key: kv.value for kv in harness.diagnostics[-1].values}[
+        'loop thread scheduling'] != 'not started', 2.0, 'diagnostics')
+    values = {kv.key: kv.value for kv in harness.diagnostics[-1].values}
+    assert values['loop thread scheduling'] == \
+        'any core (cpu_affinity [4096] not granted); ordinary scheduling'
+    assert harness.node.p.cpu_affinity == (4096,)

@@ -34,6 +34,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rosbags.rosbag2 import Reader
+from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from test_characterisation import simulated_run
@@ -319,9 +320,9 @@ def test_a_hung_run_owner_stops_both_actuators_within_the_watchdog_time(rig_fact
     os.kill(owner_pid, signal.SIGSTOP)
     hung_s = time.time()
     # Its last word came before the hang: the loops stop within their watchdog time and
-    # the ramp after it (state stamps are the CAN send times, on the same clock); 50 ms
-    # for scheduling.
-    allowance_s = WATCHDOG_TIMEOUT_S + MAX_SPEED_M_S / WATCHDOG_DECEL_M_S2 + 0.05
+    # the ramp after it (state stamps are the CAN send times, on the same clock); 0.1 s
+    # for scheduling on this shared machine.
+    allowance_s = WATCHDOG_TIMEOUT_S + MAX_SPEED_M_S / WATCHDOG_DECEL_M_S2 + 0.1
     try:
         assert_both_move_then_stop_by(rig, hung_s, allowance_s)
     finally:
@@ -359,10 +360,12 @@ def test_the_stop_service_leaves_both_actuators_holding(rig_factory):
     rig = rig_factory(STATE_TOPICS + [('/flexure/run', DiagnosticStatus)])
     rig.wait_for_actuators()
     start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
-    stop_s = time.time()
     assert rig.call('/trajectory_generator/stop').success
-    assert_both_move_then_stop_by(rig, stop_s, 0.2 + MAX_SPEED_M_S / WATCHDOG_DECEL_M_S2)
-    assert run_words(rig)[-1][1].state is RunState.STOPPED
+    assert rig.spin_until(lambda: run_words(rig)[-1][1].state is RunState.STOPPED, 5.0)
+    # From the owner's word STOPPED (as this probe heard it; the loops hear it alike): the
+    # ramp to zero, and 0.1 s for scheduling on this shared machine.
+    stopped_s = min(t for t, w in run_words(rig) if w.state is RunState.STOPPED)
+    assert_both_move_then_stop_by(rig, stopped_s, 0.1 + MAX_SPEED_M_S / WATCHDOG_DECEL_M_S2)
     assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
 
 
@@ -425,10 +428,20 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
         assert set(row) >= {'bag', 'max_abs_error_x_mm', 'max_abs_error_y_mm',
                             'rms_error_x_mm', 'rms_error_y_mm'}
         assert row['points'] > 0.5 * 500 * 14
-        # Each run's bag opens in an independent reader, with the tracker's points in it.
+        # Each run's bag opens in an independent reader, with the tracker's points, both
+        # actuators' 500 Hz states, the plan and the run's words in it.
         with Reader(Path(row['bag'])) as bag:
             counts = {c.topic: c.msgcount for c in bag.connections}
             assert counts['/flexure/tracker/end'] >= row['points']
+            for actuator in ('actuator_1', 'actuator_2'):
+                assert counts[f'/flexure/{actuator}/state'] > 0.8 * 500 * 14, counts
+            # The run's plan; the one before it too, latched, from the second run on.
+            assert counts['/flexure/actuator_trajectory'] in (1, 2), counts
+            assert counts['/flexure/run'] > 0.8 * 14 / 0.05, counts
+            states = [c for c in bag.connections if c.topic == '/flexure/actuator_2/state']
+            connection, _, raw = next(bag.messages(connections=states))
+            state = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(raw, connection.msgtype)
+            assert list(state.name) == ['actuator_2'] and abs(state.position[0]) < 0.045
     # The uncorrected run: real errors, millimetres as in the paper (RMS: one burst of
     # this shared machine's jitter can set a maximum).
     assert 0.3 < original['rms_error_x_mm'] < 4.0, result.stdout[-3000:]

@@ -33,14 +33,10 @@ LEAD_IN_S = 2.5
 LEAD_OUT_S = 1.0
 UP_TIMEOUT_S = 120.0
 RECORDER_TIMEOUT_S = 60.0
-# Topics the recorder must have subscribed to before a run may start: what a run needs.
+# Topics the recorder must have subscribed to before a run may start: what path
+# correction needs. It records every run topic (the recorder's default), the actuators'
+# states included.
 RECORDED_BEFORE_START = RUN_TOPICS
-# What the demo records by default: all the run's topics but the two 500 Hz actuator
-# states. Recording those too costs about half a core here, and on two cores shared by
-# the simulator and six node processes that load shows up as jitter in the runs.
-DEMO_TOPICS = RECORDED_BEFORE_START + ('/flexure/command_path', '/flexure/actuator_setpoints',
-                                       '/diagnostics')
-ALL_RUN_TOPICS = DEMO_TOPICS + ('/flexure/actuator_1/state', '/flexure/actuator_2/state')
 
 
 class DemoError(FlexureCtrlError, RuntimeError):
@@ -86,10 +82,6 @@ def add_parser(commands) -> None:
     parser.add_argument('--bag-dir', type=Path, default=Path('bags'), metavar='DIR',
                         help='where the runs are recorded, one bag per iteration '
                              '(default: %(default)s)')
-    parser.add_argument('--record-states', action='store_true',
-                        help="also record the actuators' 500 Hz state topics; on a 2-core "
-                             'machine this disturbs the runs (two runs of one command then '
-                             'differed by up to 2.2 mm), so use it to diagnose, not for figures')
     parser.add_argument('--can-port', type=int, metavar='PORT',
                         help='socketcand port of the simulated rig (default: config/sim.yaml)')
     parser.add_argument('--tracker-port', type=int, metavar='PORT',
@@ -291,10 +283,9 @@ def _up_command(arguments: argparse.Namespace) -> List[str]:
     return command
 
 
-def _start_recorder(bag_dir: Path, bag_name: str, topics, quiet: bool) -> _Process:
+def _start_recorder(bag_dir: Path, bag_name: str, quiet: bool) -> _Process:
     recorder = _Process([sys.executable, '-m', 'flexure_ctrl.nodes.recorder', '--ros-args',
-                         '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}',
-                         '-p', f'topics:=[{",".join(topics)}]'],
+                         '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}'],
                         quiet, prefix='[recorder] ')
     for topic in RECORDED_BEFORE_START:
         if recorder.wait_for_line(lambda line, t=topic: f'recording {t} [' in line,
@@ -308,8 +299,7 @@ def _start_recorder(bag_dir: Path, bag_name: str, topics, quiet: bool) -> _Proce
 def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
                 arguments: argparse.Namespace, progress: _Progress, index: int) -> Path:
     """Record one run of the path; return its bag folder."""
-    topics = ALL_RUN_TOPICS if arguments.record_states else DEMO_TOPICS
-    recorder = _start_recorder(bag_dir, bag_name, topics, arguments.quiet)
+    recorder = _start_recorder(bag_dir, bag_name, arguments.quiet)
     try:
         operator.start_run()
         run_s = LEAD_IN_S + arguments.period + LEAD_OUT_S

@@ -103,7 +103,7 @@ class ActuatorLoop(Node):
         self._publishing = True
         self.thread = LoopThread(self.rate_hz, self._cycle, self._lock, p.realtime_priority,
                                  self.get_logger(), name=f'{self.actuator}-loop',
-                                 on_error=self._on_loop_error)
+                                 on_error=self._on_loop_error, cpu_affinity=p.cpu_affinity)
 
         self._state = JointState(name=[self.actuator], position=[0.0], velocity=[0.0])
         self._status_name = common.STATUS_PREFIX + self.actuator

@@ -93,6 +93,7 @@ class LoopParameters:
     heartbeat_timeout_s: float
     realtime_priority: int
     connect_timeout_s: float
+    cpu_affinity: Tuple[int, ...]
     compensate_reading_age: bool
     stroke_limit_m: float
 
@@ -110,11 +111,20 @@ def declare_loop_parameters(node: Node, error: Type[Exception]) -> LoopParameter
     for name, default, parameter_type, description in _TYPED:
         node.declare_parameter(name, default, typed_descriptor(parameter_type, description,
                                                                read_only=True))
+    # Statically typed with no default: not set means any core.
+    affinity_descriptor = typed_descriptor(
+        ParameterType.PARAMETER_INTEGER_ARRAY, 'cores the loop thread may run on, e.g. [1] '
+        '(other threads keep theirs); not set: any. Refused with a warning if not granted, '
+        'and the loop runs anyway', read_only=True)
+    affinity = node.declare_parameter('cpu_affinity', Parameter.Type.INTEGER_ARRAY,
+                                      affinity_descriptor)
     node.declare_parameter('design.stroke_limit_m', Parameter.Type.DOUBLE, float_descriptor(
         'symmetric actuator stroke limit (m), from the design YAML', 1e-4, 1.0,
         read_only=True))
     value = {name.replace('.', '_'): node.get_parameter(name).value
              for name, *_ in _RANGED + _TYPED}
+    value['cpu_affinity'] = (tuple(affinity.value)
+                             if affinity.type_ is not Parameter.Type.NOT_SET else ())
     try:
         value['stroke_limit_m'] = node.get_parameter('design.stroke_limit_m').value
     except ParameterUninitializedException:
@@ -136,11 +146,14 @@ class LoopThread:
 
     def __init__(self, rate_hz: int, cycle: Callable[[], None], lock: threading.RLock,
                  realtime_priority: int, logger, name: str,
-                 on_error: Callable[[], None]) -> None:
+                 on_error: Callable[[], None], cpu_affinity: Tuple[int, ...] = ()) -> None:
         self.period_ns = _NS_PER_S // rate_hz
         self._cycle = cycle
         self._lock = lock
         self._priority = realtime_priority
+        self._affinity = tuple(cpu_affinity)
+        # What the operating system granted the thread, for the diagnostics.
+        self.scheduling = 'not started'
         self._logger = logger
         self._on_error = on_error
         self._stop = threading.Event()
@@ -173,7 +186,8 @@ class LoopThread:
         return float(median), float(p99)
 
     def _run(self) -> None:
-        self._set_realtime_priority()
+        self.scheduling = '; '.join(apply_thread_scheduling(
+            self._affinity, self._priority, self._logger))
         try:
             self._loop()
         except BaseException:
@@ -182,18 +196,6 @@ class LoopThread:
             with self._lock:
                 self._on_error()
             raise
-
-    def _set_realtime_priority(self) -> None:
-        """Give this thread SCHED_FIFO if asked; other threads keep theirs."""
-        if not self._priority:
-            return
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self._priority))
-        except (PermissionError, AttributeError, OSError) as error:
-            self._logger.warning(f'realtime_priority {self._priority} not granted ({error}); '
-                                 'the loop runs with ordinary scheduling and more jitter')
-            return
-        self._logger.info(f'loop thread runs SCHED_FIFO at priority {self._priority}')
 
     def _loop(self) -> None:
         period_ns = self.period_ns
@@ -218,6 +220,45 @@ class LoopThread:
                 self._count += 1
                 last_ns = now_ns
                 self._cycle()
+
+
+def apply_thread_scheduling(cpus: Tuple[int, ...], priority: int, logger) -> List[str]:
+    """
+    Pin the calling thread to ``cpus`` and give it SCHED_FIFO ``priority``, as far as granted.
+
+    Either one not granted is logged as a warning naming the parameter, and the thread goes
+    on without it. Other threads of the process keep their own settings.
+
+    :param cpus: cores to run on; empty: any.
+    :param priority: SCHED_FIFO priority, 1 to 98; 0: ordinary scheduling.
+    :returns: what the thread runs with, one text per setting.
+    """
+    result = []
+    if cpus:
+        try:
+            os.sched_setaffinity(0, cpus)  # pid 0: this thread on Linux
+        except (OSError, ValueError) as error:
+            logger.warning(f'cpu_affinity {list(cpus)} not granted ({error}); the loop runs '
+                           'on any core')
+            result.append(f'any core (cpu_affinity {list(cpus)} not granted)')
+        else:
+            result.append(f'cores {sorted(os.sched_getaffinity(0))}')
+    else:
+        result.append('any core')
+    if priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError as error:
+            logger.warning(f'realtime_priority {priority} not granted ({error}): grant '
+                           'CAP_SYS_NICE or an rtprio limit; the loop runs with ordinary '
+                           'scheduling and more jitter')
+            result.append(f'ordinary scheduling (realtime_priority {priority} not granted)')
+        else:
+            result.append(f'SCHED_FIFO {priority}')
+    else:
+        result.append('ordinary scheduling')
+    logger.info(f'loop thread: {", ".join(result)}')
+    return result
 
 
 def status_of(mode: Mode, problem: str, controller: ActuatorController) -> LoopStatus:
@@ -261,6 +302,7 @@ def diagnostic_values(mode: Mode, client: Optional[DriveClient],
         ('loop period median (ms)', f'{median_ms:.3f}'),
         ('loop period p99 (ms)', f'{p99_ms:.3f}'),
         ('loop overruns', str(thread.overruns)),
+        ('loop thread scheduling', thread.scheduling),
         ('jog setpoints ignored during a run', str(controller.stream_ignored)),
         ('jog setpoints stale', str(controller.stream_stale)),
         ('setpoint clamps', str(controller.loop.clamp_count)),

@@ -30,22 +30,25 @@ from typing import Dict, List, Optional, Set, Tuple
 from flexure_ctrl.core.bag import BagError, BagWriter
 from flexure_ctrl.nodes.bag_qos import message_class, qos_to_dict, RECORD_DEPTH
 from flexure_ctrl.nodes.bag_qos import subscription_qos
-from flexure_ctrl.nodes.common import actuator_state_topic, COMMAND_PATH_TOPIC, COMMAND_TOPIC
-from flexure_ctrl.nodes.common import DEMAND_PATH_TOPIC, DEMAND_TOPIC, DIAGNOSTICS_TOPIC
-from flexure_ctrl.nodes.common import float_descriptor, run_node_to_a_clean_stop
-from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
-from flexure_ctrl.nodes.common import tracker_topic, typed_descriptor
+from flexure_ctrl.nodes.common import ACTUATOR_NAMES, actuator_state_topic
+from flexure_ctrl.nodes.common import actuator_status_topic
+from flexure_ctrl.nodes.common import COMMAND_PATH_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC
+from flexure_ctrl.nodes.common import DEMAND_TOPIC, DIAGNOSTICS_TOPIC, float_descriptor
+from flexure_ctrl.nodes.common import run_node_to_a_clean_stop, RUN_TOPIC, SETPOINTS_TOPIC
+from flexure_ctrl.nodes.common import tracker_topic, TRAJECTORY_TOPIC, typed_descriptor
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.subscription import Subscription
 
-# The topics of a run, recorded by default.
+# The topics of a run, recorded by default: its plan and words, the paths, the actuators'
+# 500 Hz states, the tracker's end point and the diagnostics (what a user needs to see why
+# a run went wrong), and the jog stream.
 RUN_TOPICS = [
-    DEMAND_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC, COMMAND_PATH_TOPIC, SETPOINTS_TOPIC,
-    actuator_state_topic('actuator_1'), actuator_state_topic('actuator_2'),
-    tracker_topic('end'), DIAGNOSTICS_TOPIC,
-]
+    DEMAND_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC, COMMAND_PATH_TOPIC, TRAJECTORY_TOPIC,
+    RUN_TOPIC, SETPOINTS_TOPIC, tracker_topic('end'), DIAGNOSTICS_TOPIC,
+] + [topic(actuator) for actuator in ACTUATOR_NAMES
+     for topic in (actuator_state_topic, actuator_status_topic)]
 # Never recorded when recording "every topic": the graph's own plumbing.
 _GRAPH_TOPICS = ('/rosout', '/parameter_events')
 
