@@ -291,3 +291,19 @@ def test_comparing_a_reading_with_its_own_times_setpoint_makes_runs_repeat():
     spread_own = np.abs(_track_a_sine(1, True) - _track_a_sine(2, True)).max()
     assert spread_own < 0.25 * spread_now
     assert spread_own < 5e-6
+
+
+def test_a_problem_of_the_other_actuator_stops_a_run_at_once():
+    ctrl = controller(gain=0.0, feedforward=1.0)
+    ctrl.on_peer_problem('actuator_2', 'DriveFaultError: drive 2')  # no run: nothing
+    assert ctrl.following is Following.IDLE
+    ctrl.load_trajectory(ramp_sampler(start_m=0.0, speed_m_s=0.01), 0)
+    ctrl.on_run_message(running(0), 0)
+    assert ctrl.step(2 * MS, 0.0) == pytest.approx(0.01)
+    ctrl.on_peer_problem('actuator_2', '')  # all well over there
+    assert ctrl.following is Following.RUN
+    ctrl.on_peer_problem('actuator_2', 'DriveFaultError: drive 2')
+    assert ctrl.following is Following.STOPPING and ctrl.problem == ''
+    assert ctrl.stop_reason == 'actuator_2: DriveFaultError: drive 2'
+    _assert_ramps_to_zero([ctrl.step(now, 0.0) for now in range(4 * MS, 40 * MS, 2 * MS)],
+                          0.01)

@@ -332,6 +332,16 @@ class ActuatorController:
         self.following = Following.STREAM
         return True
 
+    def on_peer_problem(self, peer: str, problem: str) -> None:
+        """
+        Stop a run at once when the other actuator reports a problem.
+
+        The run owner ends the run on both anyway; this is the direct path, which does
+        not wait for the owner. Not this loop's problem: nothing is reported.
+        """
+        if problem and self.following is Following.RUN:
+            self.stop(f'{peer}: {problem}')
+
     def stop(self, reason: str, problem: bool = False) -> None:
         """
         Ramp to zero velocity and hold it, whatever was followed.

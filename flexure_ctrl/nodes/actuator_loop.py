@@ -43,7 +43,7 @@ from flexure_ctrl.core.actuator_drive import ActuatorDrive, Mode
 from flexure_ctrl.core.drive_link import DriveConnectError, DriveLink
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.ploop import ActuatorController, LoopLimits, ProportionalLoop
-from flexure_ctrl.core.run import PlanError, RunMessage
+from flexure_ctrl.core.run import ACTUATOR_NAMES, LoopStatus, PlanError, RunMessage
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.actuator_support import declare_loop_parameters, diagnostic_values
 from flexure_ctrl.nodes.actuator_support import level_of, LoopThread, status_of
@@ -122,6 +122,11 @@ class ActuatorLoop(Node):
         self.create_subscription(JointTrajectory, common.TRAJECTORY_TOPIC,
                                  self._on_trajectory, common.latched_qos())
         self.create_subscription(DiagnosticStatus, common.RUN_TOPIC, self._on_run, 10)
+        for peer in ACTUATOR_NAMES:
+            if peer != self.actuator:
+                self.create_subscription(DiagnosticStatus, common.actuator_status_topic(peer),
+                                         lambda m, p=peer: self._on_peer(p, m),
+                                         common.latched_qos())
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/quick_stop', self._on_quick_stop)
         self.add_post_set_parameters_callback(self._on_parameters_set)
@@ -272,6 +277,19 @@ class ActuatorLoop(Node):
             if self.controller.following is not before:
                 self.drive.events.append((logging.INFO, f'run {run.state.value}: following '
                                           f'{self.controller.following.value}'))
+                self._report()
+
+    def _on_peer(self, peer: str, message: DiagnosticStatus) -> None:
+        try:
+            status = LoopStatus.from_pairs(pairs_of(message))
+        except ValueError:
+            return
+        with self._lock:
+            before = self.controller.following
+            self.controller.on_peer_problem(peer, status.problem)
+            if self.controller.following is not before:
+                self.drive.events.append((logging.WARNING, f'{peer} reports a problem: '
+                                          'stopping the run'))
                 self._report()
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
