@@ -338,10 +338,14 @@ def main() -> int:
     logging.getLogger('can.socketcand').setLevel(logging.WARNING)
     loop_core = sorted(os.sched_getaffinity(0))[-1]
     default = measure(arguments, pinned=False)
-    pinned = measure(arguments, pinned=True)
     total = report('(a) as up --sim runs by default', default, arguments.toggles)
-    report(f'(b) loops on core {loop_core} under SCHED_FIFO {LOOP_PRIORITY}, the rest on '
-           'the others', pinned, arguments.toggles)
+    label = (f'(b) loops on core {loop_core} under SCHED_FIFO {LOOP_PRIORITY}, the rest on '
+             'the others')
+    try:
+        report(label, measure(arguments, pinned=True), arguments.toggles)
+    except SystemExit as error:
+        # On a machine with two cores the simulator shares the one left with every node.
+        print(f'--- set-up {label}\nnot measured: {error}')
     print(f'live_cpu_percent_of_one_core: {total:.1f}')
     return 0
 
