@@ -175,16 +175,6 @@ class JointSampler:
         self._velocities = [float(v) for v in velocities_m_s]
         self._index = 0
 
-    @property
-    def first_position_m(self) -> float:
-        """Position (m) of the first point, held during the lead-in."""
-        return self._positions[0]
-
-    @property
-    def duration_s(self) -> float:
-        """Time of the last point from path time zero (s)."""
-        return self._times[-1]
-
     def sample(self, t_s: float) -> Tuple[float, float]:
         """Return ``(position m, velocity m/s)`` at ``t_s`` s from path time zero."""
         times = self._times
@@ -379,10 +369,6 @@ class RunSupervisor:
     def stop(self, reason: str = 'stopped on request') -> bool:
         """End the run (both loops ramp to zero and hold); return whether one was active."""
         return self._end(RunState.STOPPED, reason)
-
-    def abort(self, reason: str) -> bool:
-        """End the run on a problem; return whether one was active."""
-        return self._end(RunState.ABORTED, reason)
 
     def _end(self, state: RunState, reason: str) -> bool:
         if not self.active:

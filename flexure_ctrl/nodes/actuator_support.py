@@ -233,30 +233,23 @@ def apply_thread_scheduling(cpus: Tuple[int, ...], priority: int, logger) -> Lis
     :param priority: SCHED_FIFO priority, 1 to 98; 0: ordinary scheduling.
     :returns: what the thread runs with, one text per setting.
     """
-    result = []
-    if cpus:
+    def granted(name, value, apply, done, fallback, advice) -> str:
         try:
-            os.sched_setaffinity(0, cpus)  # pid 0: this thread on Linux
+            apply()
         except (OSError, ValueError) as error:
-            logger.warning(f'cpu_affinity {list(cpus)} not granted ({error}); the loop runs '
-                           'on any core')
-            result.append(f'any core (cpu_affinity {list(cpus)} not granted)')
-        else:
-            result.append(f'cores {sorted(os.sched_getaffinity(0))}')
-    else:
-        result.append('any core')
-    if priority:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        except OSError as error:
-            logger.warning(f'realtime_priority {priority} not granted ({error}): grant '
-                           'CAP_SYS_NICE or an rtprio limit; the loop runs with ordinary '
-                           'scheduling and more jitter')
-            result.append(f'ordinary scheduling (realtime_priority {priority} not granted)')
-        else:
-            result.append(f'SCHED_FIFO {priority}')
-    else:
-        result.append('ordinary scheduling')
+            logger.warning(f'{name} {value} not granted ({error}){advice}')
+            return f'{fallback} ({name} {value} not granted)'
+        return done()
+
+    result = [
+        granted('cpu_affinity', list(cpus), lambda: os.sched_setaffinity(0, cpus),
+                lambda: f'cores {sorted(os.sched_getaffinity(0))}', 'any core',
+                '; the loop runs on any core') if cpus else 'any core',
+        granted('realtime_priority', priority,
+                lambda: os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority)),
+                lambda: f'SCHED_FIFO {priority}', 'ordinary scheduling',
+                ': grant CAP_SYS_NICE or an rtprio limit; the loop runs with ordinary '
+                'scheduling and more jitter') if priority else 'ordinary scheduling']
     logger.info(f'loop thread: {", ".join(result)}')
     return result
 
