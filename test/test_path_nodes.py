@@ -405,3 +405,13 @@ def test_out_of_range_parameter_is_rejected():
             TrajectoryGenerator(context=context)
     finally:
         rclpy.shutdown(context=context)
+
+
+def test_a_missing_correction_file_is_refused_naming_it(harness_factory, tmp_path):
+    harness = harness_factory(design_arguments())
+    missing = tmp_path / 'nowhere.csv'
+    with pytest.raises(FlexureCtrlError) as raised:
+        TrajectoryGenerator(context=harness.context, parameter_overrides=[
+            RclpyParameter('correction_file', value=str(missing))])
+    assert str(raised.value).startswith(f'{missing}: cannot read: ')
+    assert '\n' not in str(raised.value)
