@@ -252,6 +252,10 @@ def test_follows_setpoints_and_publishes_state(running, rig):
     # Every RPDO while running enables operation; velocities within the speed limit.
     assert all(cw == Controlword.ENABLE_OPERATION for _, cw, _ in harness.rpdos)
     assert max(abs(v) for _, _, v in harness.rpdos) <= 20_000
+    # A report made before the loop's first cycles has no period yet: take the next one.
+    harness.spin_until(lambda: math.isfinite(float({
+        kv.key: kv.value for kv in harness.diagnostics[-1].values}['loop period median (ms)'])),
+        2.0, 'a report with loop periods')
     status = harness.diagnostics[-1]
     assert status.level == DiagnosticStatus.OK
     assert status.hardware_id == f'can node {NODE_ID}'

@@ -188,6 +188,21 @@ def test_setpoints_realise_the_command_through_the_table(harness_factory):
         harness.spin_until(lambda: False, timeout_s=0.01)
     harness.spin_until(lambda: False, timeout_s=0.2)
     assert len(setpoints) == count
+    # After the run, its own command points still in flight (stamped before its end) are
+    # not a jog; a command stamped after it is.
+    run.publish(word_message(common.RUN_STATUS_NAME, RunMessage(RunState.STOPPED, 5).to_pairs()))
+    assert harness.spin_until(lambda: not solver.run_active)
+    late, fresh = PointStamped(), PointStamped()
+    late.header.stamp = harness.probe.get_clock().now().to_msg()
+    late.header.stamp.sec -= 1
+    late.point.x, late.point.y = 1.015, 0.0
+    fresh.point.x, fresh.point.y = 1.015, 0.0
+    commands.publish(late)
+    harness.spin_until(lambda: False, timeout_s=0.2)
+    assert len(setpoints) == count
+    fresh.header.stamp = harness.probe.get_clock().now().to_msg()
+    commands.publish(fresh)
+    assert harness.spin_until(lambda: len(setpoints) == count + 1)
 
 
 def test_correction_file_changes_the_command_not_the_demand(harness_factory, tmp_path):

@@ -307,3 +307,17 @@ def test_a_problem_of_the_other_actuator_stops_a_run_at_once():
     assert ctrl.stop_reason == 'actuator_2: DriveFaultError: drive 2'
     _assert_ramps_to_zero([ctrl.step(now, 0.0) for now in range(4 * MS, 40 * MS, 2 * MS)],
                           0.01)
+
+
+def test_a_jog_setpoint_made_before_a_run_ended_does_not_move_the_actuator_after_it():
+    ctrl = controller(gain=10.0)
+    ctrl.load_trajectory(ramp_sampler(start_m=0.0, speed_m_s=0.01), 0)
+    ctrl.on_run_message(running(0), 0)
+    ctrl.step(10 * MS, 0.0)
+    ctrl.on_run_message(RunMessage(RunState.STOPPED, 0, 'stopped on request'), 11 * MS)
+    # In flight when the run ended (made at 9 ms): ignored, the loop keeps holding.
+    assert not ctrl.on_stream_setpoint(0.02, 0.0, 9 * MS, 12 * MS)
+    assert ctrl.following is Following.STOPPING
+    # A jog made after the end is followed.
+    assert ctrl.on_stream_setpoint(0.02, 0.0, 20 * MS, 20 * MS)
+    assert ctrl.following is Following.STREAM

@@ -243,7 +243,7 @@ class ActuatorController:
                  'hold', 'following', 'output_m_s', 'setpoint_m', 'problem', 'stop_reason',
                  'trajectory_stamp_ns', '_sampler', '_loaded_sampler', '_loaded_stamp_ns',
                  '_last_run_ns', '_last_step_ns', 'stream_ignored', 'stream_stale',
-                 '_ended_stamp_ns',
+                 '_ended_stamp_ns', '_run_ended_ns',
                  'max_deviation_m')
 
     _MAX_DT_S = 0.02
@@ -273,6 +273,7 @@ class ActuatorController:
         self._last_run_ns = 0
         # The run last followed: it is not followed again, whatever its word says later.
         self._ended_stamp_ns: Optional[int] = None
+        self._run_ended_ns = 0
         self._last_step_ns: Optional[int] = None
         self.stream_ignored = 0
         self.stream_stale = 0
@@ -321,7 +322,9 @@ class ActuatorController:
         Ignored during a run, and when made more than ``watchdog_timeout_s`` ago (it
         must not restart motion) or not a finite number.
         """
-        if self.following is Following.RUN:
+        if self.following is Following.RUN or made_ns < self._run_ended_ns:
+            # During a run, and for setpoints made before its end (in flight when it
+            # ended): a run's end must not hand the actuator to a stream of its time.
             self.stream_ignored += 1
             return False
         if now_ns - made_ns > self._timeout_ns or not (
@@ -351,6 +354,7 @@ class ActuatorController:
         """
         if self.following is Following.RUN:
             self._ended_stamp_ns = self.trajectory_stamp_ns
+            self._run_ended_ns = self._last_step_ns or 0
         self.following = Following.STOPPING
         self.stop_reason = reason
         if problem:
@@ -360,6 +364,7 @@ class ActuatorController:
         """Forget the last command and stop following (the drive was stopped otherwise)."""
         if self.following is Following.RUN:
             self._ended_stamp_ns = self.trajectory_stamp_ns
+            self._run_ended_ns = self._last_step_ns or 0
         self.following = Following.IDLE
         self.output_m_s = 0.0
         self._last_step_ns = None

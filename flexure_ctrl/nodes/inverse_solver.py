@@ -48,6 +48,8 @@ class InverseSolverNode(Node):
                                                            10)
         self.create_subscription(PointStamped, COMMAND_TOPIC, self._on_command, 10)
         self.run_active = False
+        # Command points stamped up to here belong to the last run: never a jog.
+        self._run_ended_ns = 0
         self.create_subscription(DiagnosticStatus, RUN_TOPIC, self._on_run, 10)
         self.create_timer(1.0, self._publish_diagnostics)
         self._setpoint = JointState()
@@ -65,14 +67,19 @@ class InverseSolverNode(Node):
             state = RunMessage.from_pairs(pairs_of(message)).state
         except ValueError:
             return
-        self.run_active = state in (RunState.ARMING, RunState.RUNNING)
+        active = state in (RunState.ARMING, RunState.RUNNING)
+        if self.run_active and not active:
+            # The run's own command points may still arrive after its end (they travel on
+            # another topic): none stamped before now is a jog.
+            self._run_ended_ns = self.get_clock().now().nanoseconds
+        self.run_active = active
 
     def _on_command(self, message: PointStamped) -> None:
-        if self.run_active:
+        stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+        if self.run_active or 0 < stamp_ns < self._run_ended_ns:
             self._previous_point = None
             return
         x_m, y_m = message.point.x, message.point.y
-        stamp_ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
         velocity_m_s = (0.0, 0.0)
         if self._previous_point is not None and stamp_ns > self._previous_stamp_ns:
             elapsed_s = (stamp_ns - self._previous_stamp_ns) * 1e-9
