@@ -178,6 +178,7 @@ def make_node(context: rclpy.Context, channel: str, *extra: str) -> ActuatorLoop
     arguments = ['--ros-args', '-r', f'__node:={ACTUATOR}', '-p', f'actuator:={ACTUATOR}',
                  '-p', 'can.interface:=virtual', '-p', f'can.channel:={channel}',
                  '-p', f'node_id:={NODE_ID}', '-p', 'design.stroke_limit_m:=0.045',
+                 '-p', 'drive.eds_file:=drives/lead_screw_sim.eds',
                  '-p', 'watchdog_timeout_s:=1.0',
                  '-p', f'watchdog_decel_m_s2:={WATCHDOG_DECEL_M_S2}',
                  '-p', 'connect_timeout_s:=5.0', *extra]

@@ -13,9 +13,12 @@ import can
 from conftest import TickedDrive
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState
+from flexure_ctrl.core.commissioning import commission, DriveDescription
+from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_client import DriveClient, DriveError, DriveFaultError
 from flexure_ctrl.core.drive_client import DriveTimeoutError, HeartbeatLostError
 from flexure_ctrl.core.drive_client import SdoAbortError
+from flexure_ctrl.sim.drive import SIMULATED_DRIVE_EDS
 import pytest
 
 NODE_ID = 7
@@ -54,9 +57,17 @@ def rig(channel) -> Iterator[TickedDrive]:
     ticked.shutdown()
 
 
+def commissioned_bus(channel: str) -> can.BusABC:
+    """A master's bus on ``channel``, after commissioning the drive over it."""
+    bus = can.Bus(interface='virtual', channel=channel)
+    commission(bus, DriveDescription(str(find_config_file(SIMULATED_DRIVE_EDS)), NODE_ID,
+                                     1e6, stroke_limit_m=0.02, master_node_id=120))
+    return bus
+
+
 @pytest.fixture
 def client(channel, rig) -> Iterator[DriveClient]:
-    bus = can.Bus(interface='virtual', channel=channel)
+    bus = commissioned_bus(channel)
     with DriveClient(bus, NODE_ID, heartbeat_timeout_s=0.3, owns_bus=True) as drive_client:
         yield drive_client
 
@@ -211,7 +222,7 @@ def test_sdo_abort_carries_the_abort_code(client, rig):
 
 
 def test_shutdown_is_idempotent_and_disables(channel, rig):
-    bus = can.Bus(interface='virtual', channel=channel)
+    bus = commissioned_bus(channel)
     client = DriveClient(bus, NODE_ID, owns_bus=True)
     client.start(timeout_s=2.0)
     client.shutdown()
@@ -224,7 +235,7 @@ def test_shutdown_is_idempotent_and_disables(channel, rig):
 
 
 def test_shutdown_never_raises_when_the_bus_is_gone(channel, rig):
-    bus = can.Bus(interface='virtual', channel=channel)
+    bus = commissioned_bus(channel)
     client = DriveClient(bus, NODE_ID)
     client.start(timeout_s=2.0)
     bus.shutdown()
@@ -240,3 +251,13 @@ def test_a_position_reading_carries_the_time_its_frame_was_received(client, rig)
                'TPDOs')
     # The virtual bus stamps frames with the system clock, as SocketCAN and socketcand do.
     assert before_s <= client.position_time_s <= time.time()
+
+
+def test_an_uncommissioned_drive_does_not_start_and_says_why(channel, rig):
+    with DriveClient(can.Bus(interface='virtual', channel=channel), NODE_ID,
+                     owns_bus=True) as client:
+        with pytest.raises(DriveTimeoutError, match=r'its TPDO1 does not read as statusword '
+                           r'\+ position \(PDO needs 6 data bytes, got 2\): is it '
+                           r'commissioned\?'):
+            client.start(timeout_s=0.5)
+    assert rig.actuator.rod_position_m == 0.0

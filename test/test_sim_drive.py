@@ -149,7 +149,7 @@ def test_bad_parameters_are_rejected():
 class Bench:
     """A drive and a hand-driven master on one virtual channel, with explicit time."""
 
-    def __init__(self, parameters=None, **drive_kwargs):
+    def __init__(self, parameters=None, commissioned=True, **drive_kwargs):
         channel = f'test_sim_drive_{uuid.uuid4().hex}'
         self.master = can.Bus(interface='virtual', channel=channel)
         self.drive_bus = can.Bus(interface='virtual', channel=channel)
@@ -157,6 +157,20 @@ class Bench:
                                           np.random.default_rng(2))
         self.drive = SimulatedDrive(self.drive_bus, NODE, self.actuator, **drive_kwargs)
         self.now_s = 100.0
+        if commissioned:
+            self.map_pdos()
+
+    def map_pdos(self):
+        """Map RPDO1/TPDO1 as the actuator loop does, over SDO (CiA 301 order)."""
+        for index, subindex, value, size in (
+                (0x1400, 1, 0x80000200 + NODE, 4), (0x1600, 0, 0, 1),
+                (0x1600, 1, 0x60400010, 4), (0x1600, 2, 0x60FF0020, 4), (0x1600, 0, 2, 1),
+                (0x1400, 1, 0x200 + NODE, 4),
+                (0x1800, 1, 0x80000180 + NODE, 4), (0x1A00, 0, 0, 1),
+                (0x1A00, 1, 0x60410010, 4), (0x1A00, 2, 0x60640020, 4), (0x1A00, 0, 2, 1),
+                (0x1800, 1, 0x180 + NODE, 4)):
+            answer = self.sdo(Sdo('download', index, subindex, value, size))
+            assert answer.kind == 'download_ok', (hex(index), subindex, answer)
 
     def close(self):
         self.drive.shutdown()
@@ -225,7 +239,7 @@ def bench():
 
 
 def test_boot_up_heartbeat_then_periodic_pre_operational_heartbeats(bench):
-    rig = bench(heartbeat_period_s=0.1)
+    rig = bench(heartbeat_period_s=0.1, commissioned=False)
     frames = rig.frames()
     assert frames == [(cia402.HEARTBEAT_BASE + NODE, b'\x00')]
     assert rig.drive.nmt_state is NmtState.PRE_OPERATIONAL
@@ -296,7 +310,7 @@ def test_sdo_server_objects(bench):
         rig.tick()
         heartbeats += rig.of(cia402.HEARTBEAT_BASE, rig.frames())
     assert len(heartbeats) == 5
-    for index in (0x6502, cia402.TARGET_VELOCITY - 1):
+    for index in (0x2000, cia402.TARGET_VELOCITY - 1):
         assert rig.sdo(Sdo('upload', index, 0)) == \
             Sdo('abort', index, 0, cia402.SDO_ABORT_OBJECT_MISSING, 4)
     assert rig.sdo(Sdo('download', cia402.STATUSWORD, 0, 0, 2)).value == \
@@ -471,3 +485,83 @@ def test_shutdown_is_idempotent_and_silences_the_drive(bench):
     for _ in range(300):
         rig.tick()
     assert rig.frames() == []
+
+
+# As a vendor drive: its own mapping out of the box, mapping rules, consumer heartbeat ----
+
+def test_out_of_the_box_pdos_carry_no_velocity_and_no_position(bench):
+    rig = bench(commissioned=False)
+    rig.start()
+    assert rig.sdo(Sdo('download', cia402.MODES_OF_OPERATION, 0, 3, 1)).kind == 'download_ok'
+    answers = []
+    for word in (Controlword.SHUTDOWN, Controlword.SWITCH_ON, Controlword.ENABLE_OPERATION):
+        rig.frames()
+        rig.send(cia402.RPDO1_BASE + NODE, cia402.encode_pdo(word, 10000))
+        rig.tick()
+        answers += rig.of(cia402.TPDO1_BASE, rig.frames())
+    # The controlword is taken (first bytes), the velocity is not mapped: no motion, and
+    # the TPDO is the statusword alone, which a master expecting a position cannot read.
+    assert rig.drive.state is DriveState.OPERATION_ENABLED
+    assert [len(a) for a in answers] == [2, 2, 2]
+    with pytest.raises(cia402.CanOpenError):
+        cia402.decode_pdo(answers[-1])
+    for _ in range(100):
+        rig.tick()
+    assert rig.actuator.rod_position_m == 0.0
+
+
+def test_mapping_changes_only_while_the_pdo_is_disabled_and_only_mappable_objects(bench):
+    rig = bench(commissioned=False)
+    refused = rig.sdo(Sdo('download', 0x1600, 1, 0x60FF0020, 4))
+    assert (refused.kind, refused.value) == ('abort', 0x08000022)
+    assert rig.sdo(Sdo('download', 0x1400, 1, 0x80000200 + NODE, 4)).kind == 'download_ok'
+    assert rig.sdo(Sdo('download', 0x1600, 0, 0, 1)).kind == 'download_ok'
+    not_mappable = rig.sdo(Sdo('download', 0x1600, 1, 0x10000020, 4))  # device type
+    assert (not_mappable.kind, not_mappable.value) == ('abort', 0x06040041)
+    wrong_length = rig.sdo(Sdo('download', 0x1600, 1, 0x60FF0010, 4))
+    assert (wrong_length.kind, wrong_length.value) == ('abort', 0x06040041)
+    too_low = rig.sdo(Sdo('download', 0x6085, 0, 0, 4))  # EDS LowLimit=1
+    assert (too_low.kind, too_low.value) == ('abort', 0x06090032)
+    short_rpdo_bench = bench()
+    short_rpdo_bench.start()
+    short_rpdo_bench.frames()
+    short_rpdo_bench.send(cia402.RPDO1_BASE + NODE, b'\x06\x00')  # mapped: 6 bytes
+    short_rpdo_bench.tick()
+    emcys = short_rpdo_bench.of(cia402.EMCY_BASE, short_rpdo_bench.frames())
+    assert [cia402.decode_emcy(e).error_code for e in emcys] == [0x8210]
+
+
+def test_silent_master_heartbeat_quick_stops_with_emcy_and_error_history(bench):
+    rig = bench(quick_stop_decel_m_s2=0.5, rpdo_timeout_s=0.0)
+    master = 0x70
+    assert rig.sdo(Sdo('download', 0x1016, 1, (master << 16) | 300, 4)).kind == 'download_ok'
+    assert rig.sdo(Sdo('download', 0x6007, 0, 3, 2)).kind == 'download_ok'
+    rig.enable()
+    rig.rpdo(Controlword.ENABLE_OPERATION, 10000)  # 10 mm/s
+    heard_s = None
+    for _ in range(200):  # 0.2 s of master heartbeats every 0.05 s
+        if heard_s is None or rig.now_s - heard_s >= 0.05:
+            rig.send(cia402.HEARTBEAT_BASE + master, b'\x05')
+            heard_s = rig.now_s
+        rig.tick()
+    assert rig.drive.state is DriveState.OPERATION_ENABLED
+    rig.frames()
+    stopped_s = None
+    for _ in range(400):
+        rig.tick()
+        emcys = rig.of(cia402.EMCY_BASE, rig.frames())
+        if emcys:
+            stopped_s = rig.now_s
+            assert [cia402.decode_emcy(e).error_code for e in emcys] == [0x8130]
+            break
+    assert stopped_s is not None
+    # Acts within the consumer time (0.3 s) of the last heartbeat, to the next tick.
+    assert 0.3 <= stopped_s - heard_s <= 0.3 + 2e-3
+    assert rig.drive.state is DriveState.QUICK_STOP_ACTIVE
+    for _ in range(100):
+        rig.tick()
+    assert rig.actuator.velocity_m_s == 0.0
+    assert rig.sdo(Sdo('upload', 0x1003, 0)).value == 1
+    assert rig.sdo(Sdo('upload', 0x1003, 1)).value == 0x8130
+    assert rig.sdo(Sdo('download', 0x1003, 0, 0, 1)).kind == 'download_ok'
+    assert rig.sdo(Sdo('upload', 0x1003, 0)).value == 0

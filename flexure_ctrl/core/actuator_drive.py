@@ -15,7 +15,7 @@ Not thread-safe: the caller holds one lock around every call. What a person shou
 
 import enum
 import logging
-from typing import List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import can
 from flexure_ctrl.core.cia402 import NmtState
@@ -50,6 +50,8 @@ class ActuatorDrive:
         self.mode = Mode.CONNECTING
         self.problem = 'not connected yet'
         self.position_stale = False
+        # Whether the latch came from the bus itself (a reset then needs a new one).
+        self.bus_failed = False
         self.measured_m = 0.0
         self.commanded_m_s = 0.0
         self.events: List[Tuple[int, str]] = []
@@ -121,6 +123,7 @@ class ActuatorDrive:
 
     def trip(self, error: Exception) -> None:
         """Latch a fault: one quick-stop frame, then no commands until reset."""
+        self.bus_failed = isinstance(error, (can.CanError, OSError))
         self.latch(Mode.FAULTED, f'{type(error).__name__}: {error}')
 
     def latch(self, mode: Mode, problem: str) -> None:
@@ -133,13 +136,22 @@ class ActuatorDrive:
         except (can.CanError, OSError) as send_error:
             self.events.append((logging.ERROR, f'could not send the quick stop: {send_error}'))
 
-    def reset(self, timeout_s: float) -> Tuple[bool, str]:
-        """Clear a latch and re-enable the drive; return (success, what happened)."""
+    def reset(self, timeout_s: float,
+              reopen: Optional[Callable[[], DriveClient]] = None) -> Tuple[bool, str]:
+        """
+        Clear a latch and re-enable the drive; return (success, what happened).
+
+        :param reopen: after a lost bus, gives a client on a new bus (see
+            :meth:`~flexure_ctrl.core.drive_link.DriveLink.reopen`).
+        """
         if self.mode is Mode.RUNNING:
             return True, 'already running'
         if self.mode in (Mode.CONNECTING, Mode.STOPPED):
             return False, f'cannot reset while {self.mode.value}: {self.problem}'
         try:
+            if self.bus_failed and reopen is not None:
+                self.client = reopen()
+                self.bus_failed = False
             self.client.start(timeout_s=timeout_s)
         except (DriveError, can.CanError, OSError) as error:
             self.problem = f'reset failed: {type(error).__name__}: {error}'

@@ -86,7 +86,9 @@ class DriveClient:
     def __init__(self, bus: can.BusABC, node_id: int, counts_per_m: float = 1e6,
                  sdo_timeout_s: float = 0.5, heartbeat_timeout_s: float = 0.5,
                  clock: Callable[[], float] = time.monotonic, owns_bus: bool = False,
-                 emergency_history: int = 16, tpdo_timeout_s: Optional[float] = None) -> None:
+                 emergency_history: int = 16, tpdo_timeout_s: Optional[float] = None,
+                 master_node_id: Optional[int] = None,
+                 master_heartbeat_period_s: float = 0.1) -> None:
         """
         Bind a client to a bus and a node id; nothing is sent until :meth:`start`.
 
@@ -103,6 +105,9 @@ class DriveClient:
             default 1.5 times the heartbeat timeout, so that a drive gone silent is
             reported as a lost heartbeat, and this catches a drive that still beats but
             no longer sends its position.
+        :param master_node_id: node id of this master's own heartbeat, which
+            :meth:`poll` sends every ``master_heartbeat_period_s`` (s) and the drive
+            watches (its 0x1016); None: no heartbeat.
         :raises ValueError: a node id or scale out of range.
         """
         if not 1 <= node_id <= 127:
@@ -118,6 +123,13 @@ class DriveClient:
                                else tpdo_timeout_s)
         self._clock = clock
         self._owns_bus = owns_bus
+        self._master_heartbeat = None if master_node_id is None else can.Message(
+            arbitration_id=cia402.HEARTBEAT_BASE + master_node_id, is_extended_id=False,
+            data=cia402.encode_heartbeat(NmtState.OPERATIONAL))
+        self._master_heartbeat_period_s = master_heartbeat_period_s
+        self._next_master_heartbeat_s = 0.0
+        # Why the latest TPDO could not be read (e.g. the drive maps other objects).
+        self.tpdo_problem = ''
         self._tpdo_id = cia402.TPDO1_BASE + node_id
         self._heartbeat_id = cia402.HEARTBEAT_BASE + node_id
         self._emcy_id = cia402.EMCY_BASE + node_id
@@ -177,8 +189,10 @@ class DriveClient:
             try:
                 statusword, position_counts = cia402.decode_pdo(message.data)
                 state = cia402.decode_state(statusword)
-            except cia402.CanOpenError:
-                return  # a malformed TPDO is dropped; a lasting problem ages the TPDO
+            except cia402.CanOpenError as error:
+                # Dropped; a lasting problem ages the TPDO, and start() says why.
+                self.tpdo_problem = f'its TPDO1 does not read as statusword + position ({error})'
+                return
             self.statusword = statusword
             self.state = state
             self.position_counts = position_counts
@@ -206,7 +220,8 @@ class DriveClient:
                 return
 
     def poll(self) -> None:
-        """Process every frame already received, without blocking."""
+        """Process every frame already received, and send the master heartbeat if due."""
+        self._beat()
         recv = self.bus.recv
         dispatch = self._dispatch
         message = recv(0.0)
@@ -214,9 +229,18 @@ class DriveClient:
             dispatch(message)
             message = recv(0.0)
 
+    def _beat(self) -> None:
+        """Send the master heartbeat if it is due."""
+        if self._master_heartbeat is not None:
+            now_s = self._clock()
+            if now_s >= self._next_master_heartbeat_s:
+                self.bus.send(self._master_heartbeat)
+                self._next_master_heartbeat_s = now_s + self._master_heartbeat_period_s
+
     def _wait(self, until_s: float, done: Callable[[], bool]) -> bool:
         """Receive frames until ``done()`` or the clock passes ``until_s``."""
         while not done():
+            self._beat()
             remaining = until_s - self._clock()
             if remaining <= 0.0:
                 return done()
@@ -324,9 +348,11 @@ class DriveClient:
             if now_s >= deadline_s:
                 state = self.state.value if fresh and self.state else 'unknown'
                 nmt = self.nmt_state.name if self.nmt_state else 'unknown'
+                hint = f'; {self.tpdo_problem}: is it commissioned?' if self.tpdo_problem \
+                    else ''
                 raise DriveTimeoutError(
                     f'drive {self.node_id}: not operation enabled within {timeout_s} s '
-                    f'(state {state}, NMT {nmt})')
+                    f'(state {state}, NMT {nmt}){hint}')
             if (self.nmt_state is not None and self.nmt_state is not NmtState.OPERATIONAL
                     and now_s - nmt_sent_s >= _NMT_RETRY_S):
                 self.send_nmt(NmtCommand.START)  # the drive booted after the first one

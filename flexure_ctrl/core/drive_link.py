@@ -1,9 +1,12 @@
 """
 One actuator loop's link to its drive: the bus and the drive client, brought up and down.
 
-:class:`DriveLink` opens the bus and starts the drive (CiA 402 to Operation Enabled),
+:class:`DriveLink` opens the bus, commissions the drive from its EDS
+(:mod:`flexure_ctrl.core.commissioning`) and starts it (CiA 402 to Operation Enabled),
 retrying until a deadline at start-up; a bus that failed is replaced by a new one on
-the next try, a drive that did not answer is tried again on the same bus. Time is passed
+the next try, a drive that did not answer is tried again on the same bus. A drive that
+answers but is refused (wrong identity, an SDO abort, limits) ends the start at once.
+After a lost bus, :meth:`DriveLink.reopen` gives a new bus and a newly commissioned drive. Time is passed
 in (integer ns of a monotonic clock). Not thread-safe: the caller orders its calls.
 """
 
@@ -12,6 +15,9 @@ import socket
 from typing import Optional
 
 import can
+from canopen import objectdictionary
+from flexure_ctrl.core.commissioning import commission, CommissioningError, \
+    CommissioningTimeoutError, DriveDescription
 from flexure_ctrl.core.drive_client import DriveClient, DriveError
 from flexure_ctrl.core.errors import FlexureCtrlError
 
@@ -54,19 +60,25 @@ class DriveLink:
     :param channel: CAN channel.
     :param host: socketcand server host.
     :param port: socketcand server port.
-    :param node_id: CANopen node id of the drive.
-    :param counts_per_m: drive position counts per m.
+    :param description: the drive (node id, counts per m, safety settings).
+    :param dictionary: its EDS, as :func:`~flexure_ctrl.core.commissioning.load_eds`
+        read it.
     :param heartbeat_timeout_s: largest gap between drive heartbeats (s).
     :param connect_timeout_s: how long (s) to keep trying at start-up.
     :param retry_s: time (s) between two tries.
     :param attempt_s: longest single try (s); the caller's thread waits that long.
     """
 
-    def __init__(self, interface: str, channel: str, host: str, port: int, node_id: int,
-                 counts_per_m: float, heartbeat_timeout_s: float, connect_timeout_s: float,
-                 retry_s: float = 0.2, attempt_s: float = 0.3) -> None:
+    def __init__(self, interface: str, channel: str, host: str, port: int,
+                 description: DriveDescription,
+                 dictionary: objectdictionary.ObjectDictionary, heartbeat_timeout_s: float,
+                 connect_timeout_s: float, retry_s: float = 0.2, attempt_s: float = 0.3
+                 ) -> None:
         self._bus_arguments = (interface, channel, host, port)
-        self._client_arguments = (node_id, counts_per_m, heartbeat_timeout_s)
+        self.description = description
+        self._dictionary = dictionary
+        self._heartbeat_timeout_s = heartbeat_timeout_s
+        self.commissioned = None
         self.connect_timeout_s = connect_timeout_s
         self._retry_ns = int(retry_s * _NS_PER_S)
         self._attempt_s = attempt_s
@@ -94,10 +106,18 @@ class DriveLink:
             if self.bus is None:
                 self.bus = open_bus(*self._bus_arguments)
             if self.client is None:
-                node_id, counts_per_m, heartbeat_timeout_s = self._client_arguments
-                self.client = DriveClient(self.bus, node_id, counts_per_m=counts_per_m,
-                                          heartbeat_timeout_s=heartbeat_timeout_s)
+                self.client = self._commissioned_client()
             self.client.start(timeout_s=max(0.05, min(self._attempt_s, remaining_s)))
+        except CommissioningError as error:
+            if not isinstance(error, CommissioningTimeoutError):
+                self.problem = str(error)
+                raise DriveConnectError(self.problem) from None
+            text = str(error)
+            if remaining_s <= 0.0:
+                self.problem = f'not connected after {self.connect_timeout_s} s: {text}'
+                raise DriveConnectError(self.problem) from None
+            self.problem = f'not connected: {text}'
+            return False
         except (can.CanError, OSError, DriveError, ValueError) as error:
             text = f'{type(error).__name__}: {error}'
             if not isinstance(error, DriveError):
@@ -111,6 +131,32 @@ class DriveLink:
             return False
         self.problem = ''
         return True
+
+    def _commissioned_client(self) -> DriveClient:
+        """Commission the drive on the current bus; a client for it, not yet started."""
+        description = self.description
+        self.commissioned = commission(self.bus, description, self._dictionary)
+        return DriveClient(self.bus, description.node_id,
+                           counts_per_m=description.counts_per_m,
+                           heartbeat_timeout_s=self._heartbeat_timeout_s,
+                           master_node_id=description.master_node_id,
+                           master_heartbeat_period_s=description.master_heartbeat_period_s)
+
+    def reopen(self) -> DriveClient:
+        """
+        After a lost bus: drop the old bus and client, open a new bus, commission again.
+
+        :returns: the new client, not yet started (its drive may have lost its settings).
+        :raises can.CanError, OSError: the new bus could not be opened.
+        :raises CommissioningError: the drive was not commissioned.
+        """
+        client, self.client = self.client, None
+        if client is not None:
+            client.shutdown()
+        self._close_bus()
+        self.bus = open_bus(*self._bus_arguments)
+        self.client = self._commissioned_client()
+        return self.client
 
     def close(self, confirm_timeout_s: float) -> Optional[bool]:
         """

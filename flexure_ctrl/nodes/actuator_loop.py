@@ -40,6 +40,7 @@ from typing import List, Optional
 import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core.actuator_drive import ActuatorDrive, Mode
+from flexure_ctrl.core.commissioning import load_eds
 from flexure_ctrl.core.drive_link import DriveConnectError, DriveLink
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.ploop import ActuatorController, LoopLimits, ProportionalLoop
@@ -91,9 +92,10 @@ class ActuatorLoop(Node):
             self.loop, p.watchdog_timeout_s, p.setpoint_hold_max_age_s, p.path_tolerance_m,
             p.compensate_reading_age)
         self.drive = ActuatorDrive(self.controller)
+        description = p.drive_description(ActuatorLoopConfigError)
         self.link = DriveLink(p.can_interface, p.can_channel, p.can_host, p.can_port,
-                              p.node_id, p.counts_per_m, p.heartbeat_timeout_s,
-                              p.connect_timeout_s)
+                              description, load_eds(description.eds_file, p.node_id),
+                              p.heartbeat_timeout_s, p.connect_timeout_s)
         # Guards the drive, the controller and the link between the loop thread and the
         # executor's callbacks. Re-entrant: service handlers call helpers.
         self._lock = threading.RLock()
@@ -299,7 +301,8 @@ class ActuatorLoop(Node):
                 response.success = False
                 response.message = f'cannot reset while {self.mode.value}: {self.problem}'
                 return response
-            response.success, response.message = self.drive.reset(_RESET_TIMEOUT_S)
+            response.success, response.message = self.drive.reset(_RESET_TIMEOUT_S,
+                                                                  self.link.reopen)
             if response.success:
                 self._quick_stop_requested = False
             self._report()

@@ -8,12 +8,15 @@ wires topics, services and the drive to :class:`~flexure_ctrl.core.ploop.Actuato
 from dataclasses import dataclass
 import math
 import os
+from pathlib import Path
 import threading
 import time
 from typing import Callable, List, Optional, Tuple, Type
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from flexure_ctrl.core.actuator_drive import Mode
+from flexure_ctrl.core.commissioning import DriveDescription
+from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_client import DriveClient
 from flexure_ctrl.core.ploop import ActuatorController
 from flexure_ctrl.core.run import ACTUATOR_NAMES, Following, LoopStatus
@@ -58,6 +61,27 @@ _RANGED = (
      'runs anyway', 0, 98, False),
     ('connect_timeout_s', 10.0, 'how long (s) to keep retrying the bus and the drive at '
      'start-up', 0.0, 3600.0, False),
+    # Commissioning (flexure_ctrl.core.commissioning): written to the drive at start.
+    ('drive.vendor_id', 0, 'expected vendor id of the drive (0x1018:01); 0: not checked',
+     0, 0xFFFFFFFF, False),
+    ('drive.product_code', 0, 'expected product code of the drive (0x1018:02); 0: not '
+     'checked', 0, 0xFFFFFFFF, False),
+    ('drive.master_node_id', 0, "node id of this loop's own heartbeat, which the drive "
+     'watches; one per loop; 0: 127 - node_id', 0, 127, False),
+    ('drive.master_heartbeat_period_s', 0.1, "period (s) of this loop's heartbeat", 0.005,
+     10.0, False),
+    ('drive.consumer_heartbeat_s', 0.3, "the drive quick-stops when this loop's heartbeat "
+     'is silent this long (s; 0x1016, 0x6007 = 3)', 0.01, 65.0, False),
+    ('drive.heartbeat_period_s', 0.1, "the drive's own heartbeat period (s; 0x1017)", 0.01,
+     10.0, False),
+    ('drive.tpdo_period_s', 0.01, 'event timer (s) of the position TPDO (0x1800:05)', 0.001,
+     1.0, False),
+    ('drive.quick_stop_decel_m_s2', 0.5, "the drive's quick-stop deceleration (m/s^2; "
+     '0x6085)', 1e-3, 100.0, False),
+    ('drive.profile_accel_m_s2', 0.2, "the drive's profile acceleration (m/s^2; 0x6083)",
+     1e-3, 100.0, False),
+    ('drive.profile_decel_m_s2', 0.2, "the drive's profile deceleration (m/s^2; 0x6084)",
+     1e-3, 100.0, False),
 )
 _TYPED = (
     ('actuator', '', _STRING, 'which actuator this loop drives: ' + ' or '.join(ACTUATOR_NAMES)),
@@ -65,6 +89,9 @@ _TYPED = (
      'python-can interface: socketcan (rig), socketcand (simulated rig), virtual (tests)'),
     ('can.channel', 'can0', _STRING, 'CAN channel (socketcand: the bus name the server serves)'),
     ('can.host', '127.0.0.1', _STRING, 'socketcand server host (socketcand only)'),
+    ('drive.eds_file', '', _STRING, "the drive's EDS or DCF (required); a relative path "
+     'not found from the working folder is looked up in the config folders, e.g. '
+     'drives/lead_screw_sim.eds'),
     ('compensate_reading_age', True, _BOOL,
      'compare each potentiometer reading with the setpoint of the time its TPDO was received '
      '(the CAN frame timestamp, system clock) instead of the setpoint of now'),
@@ -96,6 +123,41 @@ class LoopParameters:
     cpu_affinity: Tuple[int, ...]
     compensate_reading_age: bool
     stroke_limit_m: float
+    drive_eds_file: str
+    drive_vendor_id: int
+    drive_product_code: int
+    drive_master_node_id: int
+    drive_master_heartbeat_period_s: float
+    drive_consumer_heartbeat_s: float
+    drive_heartbeat_period_s: float
+    drive_tpdo_period_s: float
+    drive_quick_stop_decel_m_s2: float
+    drive_profile_accel_m_s2: float
+    drive_profile_decel_m_s2: float
+
+    def drive_description(self, error: Type[Exception]) -> DriveDescription:
+        """
+        The drive as commissioning needs it.
+
+        :raises error: no EDS given, or one that cannot be found.
+        """
+        if not self.drive_eds_file:
+            raise error("parameter drive.eds_file is not set: give the drive's EDS in the "
+                        'rig file (config/rig.yaml)')
+        path = Path(self.drive_eds_file)
+        if not path.is_absolute() and not path.is_file():
+            try:
+                path = find_config_file(path)
+            except FileNotFoundError as missing:
+                raise error(f'parameter drive.eds_file: {missing}') from None
+        return DriveDescription(
+            str(path), self.node_id, self.counts_per_m, self.stroke_limit_m,
+            self.drive_master_node_id or 127 - self.node_id,
+            self.drive_master_heartbeat_period_s, self.drive_consumer_heartbeat_s,
+            self.drive_heartbeat_period_s, self.drive_tpdo_period_s,
+            self.drive_quick_stop_decel_m_s2, self.drive_profile_accel_m_s2,
+            self.drive_profile_decel_m_s2, self.drive_vendor_id or None,
+            self.drive_product_code or None)
 
 
 def declare_loop_parameters(node: Node, error: Type[Exception]) -> LoopParameters:

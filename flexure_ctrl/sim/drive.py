@@ -5,8 +5,11 @@ A simulated lead-screw actuator behind a CiA 402 drive, on a python-can bus.
 with a first-order lag, a screw nut that drives the output rod through a backlash dead
 band, hard end stops, and the potentiometer that measures the rod (noise, quantisation,
 slow offset drift). :class:`SimulatedDrive` puts it behind the drive side of CiA 301 /
-CiA 402 (NMT, heartbeat, expedited SDO server, RPDO1/TPDO1, EMCY), framed with
-:mod:`flexure_ctrl.core.cia402`, so the actuator loop cannot tell it from a rig drive.
+CiA 402 as a vendor drive has it: an object dictionary built from its own EDS
+(``config/drives/lead_screw_sim.eds``) and served over SDO (:mod:`.drive_objects`),
+NMT, heartbeat producer and consumer, RPDO1/TPDO1 as mapped in that dictionary, EMCY and
+the pre-defined error field. Out of the box its PDOs carry only the controlword and the
+statusword: a master must commission it (:mod:`flexure_ctrl.core.commissioning`).
 
 Time is explicit: the owner calls :meth:`SimulatedDrive.tick` with the current time and
 the step, so tests run it deterministically and the simulator runs it in real time.
@@ -21,7 +24,9 @@ from typing import Callable, Dict, Optional, Tuple
 
 import can
 from flexure_ctrl.core import cia402
+from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.sim.drive_objects import DriveObjects, PDO_EVENT_TIMER, TPDO1_COMMUNICATION
 import numpy as np
 
 _log = logging.getLogger(__name__)
@@ -30,9 +35,21 @@ _log = logging.getLogger(__name__)
 ERROR_REGISTER_GENERIC = 0x01
 ERROR_REGISTER_COMMUNICATION = 0x10
 
-# SDO abort codes beyond those cia402 defines (CiA 301).
-SDO_ABORT_COMMAND_INVALID = 0x05040001
-SDO_ABORT_SUBINDEX_MISSING = 0x06090011
+# Objects the drive acts on, beyond those cia402 names (CiA 301 / CiA 402).
+PRE_DEFINED_ERROR_FIELD = 0x1003
+CONSUMER_HEARTBEAT_TIME = 0x1016
+IDENTITY = 0x1018
+ABORT_CONNECTION_OPTION = 0x6007
+ERROR_CODE = 0x603F
+VELOCITY_ACTUAL_VALUE = 0x606C
+QUICK_STOP_DECELERATION = 0x6085
+# 0x6007 values: what the drive does when the master's heartbeat stops.
+ABORT_NO_ACTION, ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 0, 1, 2, 3
+# EMCY codes (CiA 301).
+EMCY_HEARTBEAT = 0x8130
+EMCY_PDO_LENGTH = 0x8210
+SIMULATED_DRIVE_EDS = 'drives/lead_screw_sim.eds'
+_ERROR_FIELD_LENGTH = 8
 
 _INT32_MIN = -(1 << 31)
 _INT32_MAX = (1 << 31) - 1
@@ -213,14 +230,17 @@ class SimulatedDrive:
     channel. The drive does not own the bus: :meth:`shutdown` leaves it open.
 
     On creation it sends its boot-up heartbeat and is PRE-OPERATIONAL, in
-    SWITCH ON DISABLED with no mode of operation; a master starts it (NMT), writes mode
-    3 (profile velocity, SDO 0x6060) and walks the controlword to OPERATION ENABLED.
-    RPDO1 carries controlword and target velocity (counts/s); each RPDO is answered at
-    once with TPDO1 (statusword, potentiometer position in counts), which is also sent
-    every ``tpdo_period_s`` while OPERATIONAL. Heartbeats carry the NMT state.
-    Missing RPDOs for ``rpdo_timeout_s`` in OPERATION ENABLED cause a quick stop and an
-    EMCY 0x8250. When the error register returns to zero (fault reset, or leaving
-    QUICK STOP ACTIVE after an RPDO timeout) the drive sends EMCY 0x0000.
+    SWITCH ON DISABLED with no mode of operation. Its object dictionary comes from its
+    EDS and is served over SDO. RPDO1 and TPDO1 carry what 0x1600 and 0x1A00 map (out of
+    the box: controlword alone, statusword alone); an RPDO shorter than its mapping is
+    dropped with EMCY 0x8210. Each RPDO is answered at once with TPDO1, which is also
+    sent on its event timer (0x1800:05) while OPERATIONAL. Heartbeats (0x1017) carry the
+    NMT state. When the heartbeat of the node configured in 0x1016:01 stops for its
+    consumer time, the drive sends EMCY 0x8130 and, in OPERATION ENABLED, acts on 0x6007
+    (1 fault, 2 disable voltage, 3 quick stop at 0x6085). Missing RPDOs for
+    ``rpdo_timeout_s`` in OPERATION ENABLED cause a quick stop and EMCY 0x8250. When the
+    error register returns to zero the drive sends EMCY 0x0000. Every EMCY code also goes
+    to the pre-defined error field 0x1003 (newest first; writing 0 to 0x1003:00 clears it).
 
     Thread safety: :meth:`tick`, :meth:`inject_fault` and :meth:`shutdown` may be called
     from different threads.
@@ -229,17 +249,18 @@ class SimulatedDrive:
     :param node_id: CANopen node id, 1 to 127.
     :param actuator: the physics behind the drive.
     :param counts_per_m: position and velocity scale on the wire (counts per m).
-    :param heartbeat_period_s: heartbeat producer period (s); 0 disables heartbeats.
+    :param heartbeat_period_s: heartbeat producer period (s) at boot (0x1017); 0: none.
     :param rpdo_timeout_s: RPDO watchdog (s) in OPERATION ENABLED; 0 disables it.
-    :param tpdo_period_s: event timer (s) of TPDO1 while OPERATIONAL; 0 disables it.
-    :param quick_stop_decel_m_s2: deceleration (m/s^2) of a quick stop.
+    :param tpdo_period_s: event timer (s) of TPDO1 at boot (0x1800:05); 0: none.
+    :param quick_stop_decel_m_s2: deceleration (m/s^2) of a quick stop at boot (0x6085).
+    :param eds_path: the drive's EDS; by default the simulated drive's own.
     :raises SimulationParameterError: if a parameter is out of range.
     """
 
     def __init__(self, bus: can.BusABC, node_id: int, actuator: LeadScrewActuator,
                  counts_per_m: float = 1e6, heartbeat_period_s: float = 0.1,
                  rpdo_timeout_s: float = 0.1, tpdo_period_s: float = 0.01,
-                 quick_stop_decel_m_s2: float = 0.5) -> None:
+                 quick_stop_decel_m_s2: float = 0.5, eds_path: Optional[str] = None) -> None:
         if not 1 <= node_id <= 127:
             raise SimulationParameterError(f'node id must be 1 to 127, got {node_id}')
         if not counts_per_m > 0.0:
@@ -259,29 +280,20 @@ class SimulatedDrive:
         self.actuator = actuator
         self.counts_per_m = float(counts_per_m)
         self.rpdo_timeout_s = float(rpdo_timeout_s)
-        self.tpdo_period_s = float(tpdo_period_s)
-        self.quick_stop_decel_m_s2 = float(quick_stop_decel_m_s2)
-        self._default_heartbeat_ms = int(round(heartbeat_period_s * 1000.0))
-        self._heartbeat_ms = self._default_heartbeat_ms
         self._heartbeat_id = cia402.HEARTBEAT_BASE + node_id
         self._emcy_id = cia402.EMCY_BASE + node_id
-        self._tpdo_id = cia402.TPDO1_BASE + node_id
-        self._rpdo_id = cia402.RPDO1_BASE + node_id
         self._sdo_request_id = cia402.SDO_CLIENT_TO_SERVER_BASE + node_id
-        self._sdo_response_id = cia402.SDO_SERVER_TO_CLIENT_BASE + node_id
-        # index -> (size in bytes, read, write or None); write returns an abort code or 0.
-        self._objects: Dict[int, Tuple[int, Callable[[], int],
-                                       Optional[Callable[[int, int], int]]]] = {
-            cia402.ERROR_REGISTER: (1, lambda: self.error_register, None),
-            cia402.HEARTBEAT_PRODUCER_TIME: (2, lambda: self._heartbeat_ms,
-                                             self._write_heartbeat_time),
-            cia402.CONTROLWORD: (2, lambda: self._controlword, self._write_controlword),
-            cia402.STATUSWORD: (2, lambda: self.statusword, None),
-            cia402.MODES_OF_OPERATION: (1, lambda: self.mode_of_operation,
-                                        self._write_mode_of_operation),
-            cia402.MODES_OF_OPERATION_DISPLAY: (1, lambda: self.mode_of_operation, None),
-            cia402.POSITION_ACTUAL_VALUE: (4, self._position_counts, None),
-        }
+        self.objects = DriveObjects(eds_path or find_config_file(SIMULATED_DRIVE_EDS),
+                                    node_id, self._send)
+        self._attach_objects()
+        objects = self.objects
+        objects.set_boot_value(cia402.HEARTBEAT_PRODUCER_TIME, 0,
+                               int(round(heartbeat_period_s * 1000.0)))
+        objects.set_boot_value(TPDO1_COMMUNICATION, PDO_EVENT_TIMER,
+                               int(round(tpdo_period_s * 1000.0)))
+        objects.set_boot_value(QUICK_STOP_DECELERATION, 0,
+                               int(round(quick_stop_decel_m_s2 * self.counts_per_m)))
+        objects.set_boot_value(IDENTITY, 4, node_id)  # serial number
         self._lock = threading.RLock()
         self._closed = False
         self._now_s: Optional[float] = None
@@ -292,10 +304,40 @@ class SimulatedDrive:
         self._communication_error = False
         self._controlword = 0
         self._target_velocity_counts_s = 0
+        self._errors: list = []
+        self._error_code = 0
+        # Consumer heartbeat: the producer watched and when it was last heard (s).
+        self._consumer_id: Optional[int] = None
+        self._consumer_time_s = 0.0
+        self._consumer_heard_s: Optional[float] = None
         self.state = cia402.DriveState.SWITCH_ON_DISABLED
         self.mode_of_operation = 0
         self.nmt_state = cia402.NmtState.BOOT_UP
         self._boot()
+
+    def _attach_objects(self) -> None:
+        attach = self.objects.attach
+        attach(cia402.ERROR_REGISTER, read=lambda: self.error_register)
+        attach(PRE_DEFINED_ERROR_FIELD, 0, read=lambda: len(self._errors),
+               write=self._write_error_count)
+        for subindex in range(1, _ERROR_FIELD_LENGTH + 1):
+            attach(PRE_DEFINED_ERROR_FIELD, subindex,
+                   read=lambda i=subindex: self._errors[i - 1] if i <= len(self._errors)
+                   else 0)
+        attach(CONSUMER_HEARTBEAT_TIME, 1, write=self._write_consumer_heartbeat)
+        attach(cia402.HEARTBEAT_PRODUCER_TIME, write=self._write_heartbeat_time)
+        attach(ERROR_CODE, read=lambda: self._error_code)
+        attach(cia402.CONTROLWORD, read=lambda: self._controlword,
+               write=self._write_controlword)
+        attach(cia402.STATUSWORD, read=lambda: self.statusword)
+        attach(cia402.MODES_OF_OPERATION, read=lambda: self.mode_of_operation,
+               write=self._write_mode_of_operation)
+        attach(cia402.MODES_OF_OPERATION_DISPLAY, read=lambda: self.mode_of_operation)
+        attach(cia402.POSITION_ACTUAL_VALUE, read=self._position_counts)
+        attach(VELOCITY_ACTUAL_VALUE, read=lambda: _clip_int32(
+            self.actuator.velocity_m_s * self.counts_per_m))
+        attach(cia402.TARGET_VELOCITY, read=lambda: self._target_velocity_counts_s,
+               write=self._write_target_velocity)
 
     # Public state ---------------------------------------------------------------------
 
@@ -309,7 +351,7 @@ class SimulatedDrive:
 
     @property
     def error_register(self) -> int:
-        """Error register (0x1001): bit 0 on any error, bit 4 after an RPDO timeout."""
+        """Error register (0x1001): bit 0 on any error, bit 4 on a communication error."""
         register = 0
         if self._fault_active or self._communication_error:
             register |= ERROR_REGISTER_GENERIC
@@ -320,7 +362,17 @@ class SimulatedDrive:
     @property
     def heartbeat_period_s(self) -> float:
         """Heartbeat producer period (s), as set by 0x1017; 0 when disabled."""
-        return self._heartbeat_ms / 1000.0
+        return self.objects.read(cia402.HEARTBEAT_PRODUCER_TIME) / 1000.0
+
+    @property
+    def quick_stop_decel_m_s2(self) -> float:
+        """Quick-stop deceleration (m/s^2), from 0x6085."""
+        return self.objects.read(QUICK_STOP_DECELERATION) / self.counts_per_m
+
+    @property
+    def tpdo_period_s(self) -> float:
+        """TPDO1 event timer (s), from 0x1800:05; 0 when off."""
+        return self.objects.tpdo_event_timer_s()
 
     # Driving the simulation -------------------------------------------------------------
 
@@ -329,8 +381,9 @@ class SimulatedDrive:
         Advance the drive to time ``now_s`` (s, any monotonic clock) by a step ``dt_s`` (s).
 
         Handles the frames received since the last tick (without blocking), checks the
-        RPDO watchdog, steps the physics with the resulting velocity command and sends
-        the heartbeat and event-timer TPDO when due. Does nothing after shutdown.
+        RPDO watchdog and the consumer heartbeat, steps the physics with the resulting
+        velocity command and sends the heartbeat and event-timer TPDO when due. Does
+        nothing after shutdown.
         """
         with self._lock:
             if self._closed:
@@ -342,6 +395,7 @@ class SimulatedDrive:
                     break
                 self._handle(message, now_s)
             self._check_rpdo_timeout(now_s)
+            self._check_consumer_heartbeat(now_s)
             self._step_physics(dt_s)
             self._send_periodic(now_s)
 
@@ -351,6 +405,7 @@ class SimulatedDrive:
             if self._closed:
                 return
             self._fault_active = True
+            self._error_code = error_code
             self._enter_state(cia402.DriveState.FAULT)
             self._send_emcy(error_code)
 
@@ -371,15 +426,18 @@ class SimulatedDrive:
         if message.is_extended_id or message.is_error_frame or message.is_remote_frame:
             return
         cob_id = message.arbitration_id
-        data = bytes(message.data)
         if cob_id == cia402.NMT_COB_ID:
-            self._handle_nmt(data)
+            self._handle_nmt(bytes(message.data))
+        elif cob_id == self._consumer_id:
+            self._consumer_heard_s = now_s
         elif self.nmt_state is cia402.NmtState.STOPPED:
             return  # only NMT and heartbeat work in STOPPED
         elif cob_id == self._sdo_request_id:
-            self._handle_sdo(data)
-        elif cob_id == self._rpdo_id and self.nmt_state is cia402.NmtState.OPERATIONAL:
-            self._handle_rpdo(data, now_s)
+            if len(message.data) == 8:
+                self.objects.on_sdo_request(bytes(message.data))
+        elif cob_id == self.objects.rpdo.cob_id and \
+                self.nmt_state is cia402.NmtState.OPERATIONAL:
+            self._handle_rpdo(bytes(message.data), now_s)
 
     def _handle_nmt(self, data: bytes) -> None:
         try:
@@ -404,67 +462,64 @@ class SimulatedDrive:
             self._boot()
 
     def _handle_rpdo(self, data: bytes, now_s: float) -> None:
-        try:
-            controlword, target_velocity = cia402.decode_pdo(data)
-        except cia402.CanOpenError as error:
-            _log.debug('node %d: ignored RPDO: %s', self.node_id, error)
+        layout = self.objects.rpdo
+        if len(data) < layout.codec.size:
+            self._send_emcy(EMCY_PDO_LENGTH)
             return
         self._last_rpdo_s = now_s
-        self._apply_controlword(controlword)
+        values = layout.codec.unpack_from(data)
+        target = None
+        for key, value in zip(layout.objects, values):
+            if key == (cia402.CONTROLWORD, 0):
+                self._apply_controlword(value)
+            elif key == (cia402.TARGET_VELOCITY, 0):
+                target = value
+            else:
+                self.objects.store(key[0], key[1], value)
         # A target only counts while enabled, so re-enabling later never jumps to a
         # stale velocity.
-        enabled = self.state is cia402.DriveState.OPERATION_ENABLED
-        self._target_velocity_counts_s = target_velocity if enabled else 0
+        if target is not None and self.state is cia402.DriveState.OPERATION_ENABLED:
+            self._target_velocity_counts_s = target
+        elif self.state is not cia402.DriveState.OPERATION_ENABLED:
+            self._target_velocity_counts_s = 0
         self._send_tpdo()
 
-    def _handle_sdo(self, data: bytes) -> None:
-        try:
-            request = cia402.decode_sdo(data, from_server=False)
-        except cia402.CanOpenError:
-            if len(data) == 8:
-                self._send_sdo(cia402.Sdo('abort', int.from_bytes(data[1:3], 'little'),
-                                          data[3], SDO_ABORT_COMMAND_INVALID))
-            return
-        if request.kind == 'abort':
-            return
-        entry = self._objects.get(request.index)
-        if entry is None:
-            abort = cia402.SDO_ABORT_OBJECT_MISSING
-        elif request.subindex != 0:
-            abort = SDO_ABORT_SUBINDEX_MISSING
-        elif request.kind == 'upload':
-            size, read, _ = entry
-            value = read() & ((1 << (8 * size)) - 1)
-            self._send_sdo(cia402.Sdo('upload_ok', request.index, 0, value, size))
-            return
-        elif entry[2] is None:
-            abort = cia402.SDO_ABORT_READ_ONLY
-        else:
-            abort = entry[2](request.value, request.size)
-            if not abort:
-                self._send_sdo(cia402.Sdo('download_ok', request.index, 0))
-                return
-        self._send_sdo(cia402.Sdo('abort', request.index, request.subindex, abort))
+    def _write_error_count(self, value: int) -> int:
+        if value != 0:
+            return cia402.SDO_ABORT_VALUE_RANGE
+        self._errors.clear()
+        return 0
 
-    def _write_mode_of_operation(self, value: int, size: int) -> int:
-        if cia402.signed(value, size) != cia402.PROFILE_VELOCITY_MODE:
+    def _write_consumer_heartbeat(self, value: int) -> int:
+        producer, time_ms = (value >> 16) & 0xFF, value & 0xFFFF
+        if producer == self.node_id and time_ms:
+            return cia402.SDO_ABORT_VALUE_RANGE
+        # CiA 301: monitoring starts with the first heartbeat received after this.
+        self._consumer_id = cia402.HEARTBEAT_BASE + producer if producer and time_ms \
+            else None
+        self._consumer_time_s = time_ms / 1000.0
+        self._consumer_heard_s = None
+        return 0
+
+    def _write_mode_of_operation(self, value: int) -> int:
+        if value != cia402.PROFILE_VELOCITY_MODE:
             return cia402.SDO_ABORT_VALUE_RANGE
         self.mode_of_operation = cia402.PROFILE_VELOCITY_MODE
         return 0
 
-    def _write_heartbeat_time(self, value: int, size: int) -> int:
-        if value > 0xFFFF:
-            return cia402.SDO_ABORT_VALUE_RANGE
-        self._heartbeat_ms = value
+    def _write_heartbeat_time(self, value: int) -> int:
         self._next_heartbeat_s = None  # restart the period from the next tick
         return 0
 
-    def _write_controlword(self, value: int, size: int) -> int:
-        if value > 0xFFFF:
-            return cia402.SDO_ABORT_VALUE_RANGE
+    def _write_controlword(self, value: int) -> int:
         self._apply_controlword(value)
         if self.state is not cia402.DriveState.OPERATION_ENABLED:
             self._target_velocity_counts_s = 0
+        return 0
+
+    def _write_target_velocity(self, value: int) -> int:
+        if self.state is cia402.DriveState.OPERATION_ENABLED:
+            self._target_velocity_counts_s = value
         return 0
 
     # CiA 402 state machine ------------------------------------------------------------
@@ -496,6 +551,7 @@ class SimulatedDrive:
         if communication:
             self._communication_error = False
         if had_errors and self.error_register == 0:
+            self._error_code = 0
             self._send_emcy(cia402.EMCY_NO_ERROR)
 
     def _check_rpdo_timeout(self, now_s: float) -> None:
@@ -504,9 +560,33 @@ class SimulatedDrive:
                 and now_s - self._last_rpdo_s > self.rpdo_timeout_s):
             _log.warning('node %d: no RPDO for %.3f s: quick stop', self.node_id,
                          now_s - self._last_rpdo_s)
+            self._communication_stop(cia402.EMCY_RPDO_TIMEOUT, ABORT_QUICK_STOP)
+
+    def _check_consumer_heartbeat(self, now_s: float) -> None:
+        heard_s = self._consumer_heard_s
+        if heard_s is None or now_s - heard_s <= self._consumer_time_s:
+            return
+        _log.warning('node %d: no heartbeat from node %d for %.3f s', self.node_id,
+                     self._consumer_id - cia402.HEARTBEAT_BASE, now_s - heard_s)
+        self._consumer_heard_s = None  # one event; watching again from the next heartbeat
+        option = self.objects.read(ABORT_CONNECTION_OPTION)
+        if self.state is cia402.DriveState.OPERATION_ENABLED and option != ABORT_NO_ACTION:
+            self._communication_stop(EMCY_HEARTBEAT, option)
+        else:
+            self._send_emcy(EMCY_HEARTBEAT)
+
+    def _communication_stop(self, error_code: int, option: int) -> None:
+        """Act on a lost master as 0x6007 ``option`` says, then send the EMCY."""
+        if option == ABORT_FAULT:
+            self._fault_active = True
+            self._enter_state(cia402.DriveState.FAULT)
+        elif option == ABORT_DISABLE_VOLTAGE:
+            self._enter_state(cia402.DriveState.SWITCH_ON_DISABLED)
+        else:
             self._enter_state(cia402.DriveState.QUICK_STOP_ACTIVE)
-            self._communication_error = True
-            self._send_emcy(cia402.EMCY_RPDO_TIMEOUT)
+        self._communication_error = True
+        self._error_code = error_code
+        self._send_emcy(error_code)
 
     def _step_physics(self, dt_s: float) -> None:
         deceleration = None
@@ -533,21 +613,26 @@ class SimulatedDrive:
         self._controlword = 0
         self._target_velocity_counts_s = 0
         self._last_rpdo_s = None
+        self._error_code = 0
         self.state = cia402.DriveState.SWITCH_ON_DISABLED
         self.mode_of_operation = 0
+        self.objects.reset(0x2000, 0xFFFF)
 
     def _reset_communication(self) -> None:
-        self._heartbeat_ms = self._default_heartbeat_ms
+        self.objects.reset(0x1000, 0x1FFF)
+        self._consumer_id = None
+        self._consumer_heard_s = None
 
     # Sending ----------------------------------------------------------------------------
 
     def _send_periodic(self, now_s: float) -> None:
-        if self._heartbeat_ms > 0:
-            self._next_heartbeat_s = self._due(self._next_heartbeat_s, now_s,
-                                               self._heartbeat_ms / 1000.0, self._send_heartbeat)
-        if self.nmt_state is cia402.NmtState.OPERATIONAL and self.tpdo_period_s > 0.0:
-            self._next_tpdo_s = self._due(self._next_tpdo_s, now_s, self.tpdo_period_s,
-                                          self._send_tpdo)
+        heartbeat_s = self.heartbeat_period_s
+        if heartbeat_s > 0.0:
+            self._next_heartbeat_s = self._due(self._next_heartbeat_s, now_s, heartbeat_s,
+                                               self._send_heartbeat)
+        tpdo_s = self.objects.tpdo_event_timer_s()
+        if self.nmt_state is cia402.NmtState.OPERATIONAL and tpdo_s > 0.0:
+            self._next_tpdo_s = self._due(self._next_tpdo_s, now_s, tpdo_s, self._send_tpdo)
         else:
             self._next_tpdo_s = None
 
@@ -567,20 +652,21 @@ class SimulatedDrive:
         self._send(self._heartbeat_id, cia402.encode_heartbeat(self.nmt_state))
 
     def _position_counts(self) -> int:
-        counts = int(round(self.actuator.pot_reading_m() * self.counts_per_m))
-        return min(max(counts, _INT32_MIN), _INT32_MAX)
+        return _clip_int32(self.actuator.pot_reading_m() * self.counts_per_m)
 
     def _send_tpdo(self) -> None:
-        self._send(self._tpdo_id, cia402.encode_pdo(self.statusword, self._position_counts()))
+        cob_id = self.objects.tpdo.cob_id
+        if cob_id is not None:
+            self._send(cob_id, self.objects.encode_tpdo())
 
     def _send_emcy(self, error_code: int) -> None:
+        if error_code != cia402.EMCY_NO_ERROR:
+            self._errors.insert(0, error_code)
+            del self._errors[_ERROR_FIELD_LENGTH:]
         # CiA 301: no EMCY in STOPPED.
         if self.nmt_state is not cia402.NmtState.STOPPED:
             self._send(self._emcy_id, cia402.encode_emcy(
                 cia402.Emergency(error_code, self.error_register)))
-
-    def _send_sdo(self, sdo: cia402.Sdo) -> None:
-        self._send(self._sdo_response_id, cia402.encode_sdo(sdo))
 
     def _send(self, cob_id: int, data: bytes) -> None:
         # Stamped with its send time (system clock), whether or not the bus keeps stamps.
@@ -589,3 +675,7 @@ class SimulatedDrive:
                                        is_extended_id=False))
         except can.CanError as error:
             _log.warning('node %d: could not send 0x%03X: %s', self.node_id, cob_id, error)
+
+
+def _clip_int32(value: float) -> int:
+    return min(max(int(round(value)), _INT32_MIN), _INT32_MAX)
