@@ -58,7 +58,7 @@ def rig(channel) -> Iterator[TickedDrive]:
 
 
 def commissioned_bus(channel: str) -> can.BusABC:
-    """A master's bus on ``channel``, after commissioning the drive over it."""
+    """Open a master's bus on ``channel`` and commission the drive over it."""
     bus = can.Bus(interface='virtual', channel=channel)
     commission(bus, DriveDescription(str(find_config_file(SIMULATED_DRIVE_EDS)), NODE_ID,
                                      1e6, stroke_limit_m=0.02, master_node_id=120))

@@ -6,8 +6,8 @@ from typing import Optional, Sequence
 
 from flexure_ctrl import __version__
 from flexure_ctrl.cli import (characterise_command, correct_command, demo_command,
-                              designs_command, recover_command, report_command, sim_command,
-                              solve_command, up_command)
+                              designs_command, drive_command, recover_command, report_command,
+                              sim_command, solve_command, up_command)
 from flexure_ctrl.core.errors import FlexureCtrlError
 
 
@@ -19,7 +19,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--version', action='version', version=f'%(prog)s {__version__}')
     commands = parser.add_subparsers(dest='command', metavar='COMMAND', required=True)
     for module in (up_command, sim_command, demo_command, correct_command, report_command,
-                   recover_command, characterise_command, solve_command, designs_command):
+                   recover_command, characterise_command, solve_command, designs_command,
+                   drive_command):
         module.add_parser(commands)
     return parser
 

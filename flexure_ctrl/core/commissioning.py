@@ -21,9 +21,11 @@ EDS name), and for an SDO abort its code and meaning. No rclpy here; SI units at
 drive counts on the wire (``counts_per_m``).
 """
 
+import contextlib
 from dataclasses import dataclass
+import logging
 from os import PathLike
-from typing import List, Optional, Tuple, Union
+from typing import Iterator, List, Optional, Tuple, Union
 
 import can
 import canopen
@@ -138,11 +140,11 @@ class DriveDescription:
             raise CommissioningError(f'node ids must lie in 1..127, got drive {self.node_id}'
                                      f' and master {self.master_node_id}')
         if self.master_node_id == self.node_id:
-            raise CommissioningError(f'the master node id must differ from the drive\'s '
+            raise CommissioningError("the master node id must differ from the drive's "
                                      f'({self.node_id})')
         if not 0.0 < self.master_heartbeat_period_s < self.consumer_heartbeat_s <= 65.535:
             raise CommissioningError(
-                f'the drive\'s consumer heartbeat time ({self.consumer_heartbeat_s} s) must '
+                f"the drive's consumer heartbeat time ({self.consumer_heartbeat_s} s) must "
                 f'exceed the master heartbeat period ({self.master_heartbeat_period_s} s) '
                 'and both be > 0 and <= 65.535 s')
 
@@ -188,7 +190,7 @@ def _key(index: int, subindex: int) -> str:
 
 
 def abort_meaning(code: int) -> str:
-    """CiA 301 meaning of an SDO abort code, or 'unknown abort code'."""
+    """Return the CiA 301 meaning of an SDO abort code, or 'unknown abort code'."""
     return SdoAbortedError.CODES.get(code, 'unknown abort code')
 
 
@@ -246,13 +248,28 @@ def commission(bus: can.BusABC, description: DriveDescription,
     """
     if dictionary is None:
         dictionary = load_eds(description.eds_file, description.node_id)
+    with sdo_session(bus, description.node_id, dictionary, sdo_timeout_s) as node:
+        return _commission(_Sdo(node, description.eds_file), description)
+
+
+@contextlib.contextmanager
+def sdo_session(bus: can.BusABC, node_id: int,
+                dictionary: objectdictionary.ObjectDictionary,
+                sdo_timeout_s: float) -> Iterator[canopen.RemoteNode]:
+    """
+    Yield a ``canopen`` remote node on ``bus``, receiving from a notifier thread.
+
+    The SDO client's own log lines are silenced: every failure reaches the caller as an
+    exception, which names the object.
+    """
+    logging.getLogger('canopen.sdo.client').setLevel(logging.CRITICAL)
     network = canopen.Network(bus)
-    node = canopen.RemoteNode(description.node_id, dictionary)
+    node = canopen.RemoteNode(node_id, dictionary)
     node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
     network.add_node(node)
     notifier = can.Notifier(bus, network.listeners, timeout=0.02)
     try:
-        return _commission(_Sdo(node, description.eds_file), description)
+        yield node
     finally:
         notifier.stop()
 
@@ -296,7 +313,7 @@ def _commission(sdo: _Sdo, description: DriveDescription) -> Commissioned:
 
 def _map_pdo(sdo: _Sdo, communication: int, mapping: int, cob_id: int,
              entries: Tuple[Tuple[int, int, int], ...], event_timer_ms: Optional[int]) -> None:
-    """CiA 301 order: disable, clear, map, count, transmission, enable; then read back."""
+    """Map one PDO in CiA 301 order (disable, map, count, enable), then read it back."""
     sdo.write(communication, 1, COB_ID_INVALID | cob_id)
     sdo.write(mapping, 0, 0)
     words: List[int] = [(index << 16) | (subindex << 8) | bits
@@ -314,4 +331,3 @@ def _map_pdo(sdo: _Sdo, communication: int, mapping: int, cob_id: int,
         raise CommissioningError(
             f'drive {sdo._node.id}: 0x{mapping:04X} did not take the mapping: read back '
             f'{count} entries {[hex(w) for w in found]}, wrote {[hex(w) for w in words]}')
-

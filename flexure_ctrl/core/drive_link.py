@@ -6,8 +6,9 @@ One actuator loop's link to its drive: the bus and the drive client, brought up 
 retrying until a deadline at start-up; a bus that failed is replaced by a new one on
 the next try, a drive that did not answer is tried again on the same bus. A drive that
 answers but is refused (wrong identity, an SDO abort, limits) ends the start at once.
-After a lost bus, :meth:`DriveLink.reopen` gives a new bus and a newly commissioned drive. Time is passed
-in (integer ns of a monotonic clock). Not thread-safe: the caller orders its calls.
+After a lost bus, :meth:`DriveLink.reopen` gives a new bus and a newly commissioned
+drive. Time is passed in (integer ns of a monotonic clock). Not thread-safe: the caller
+orders its calls.
 """
 
 import logging

@@ -137,7 +137,7 @@ class LoopParameters:
 
     def drive_description(self, error: Type[Exception]) -> DriveDescription:
         """
-        The drive as commissioning needs it.
+        Return the drive as commissioning needs it.
 
         :raises error: no EDS given, or one that cannot be found.
         """

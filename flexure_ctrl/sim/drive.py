@@ -20,7 +20,7 @@ import logging
 import math
 import threading
 import time
-from typing import Callable, Dict, Optional, Tuple
+from typing import Callable, Optional
 
 import can
 from flexure_ctrl.core import cia402

@@ -118,7 +118,7 @@ class DriveObjects:
     # Access -----------------------------------------------------------------------------
 
     def variable(self, index: int, subindex: int = 0) -> objectdictionary.ODVariable:
-        """The EDS entry; :class:`SdoAbortedError` when the drive has no such object."""
+        """Return the EDS entry; :class:`SdoAbortedError` when the drive lacks it."""
         if index not in self.object_dictionary:
             raise SdoAbortedError(ABORT_OBJECT_MISSING)
         entry = self.object_dictionary[index]
@@ -131,7 +131,7 @@ class DriveObjects:
         return entry[subindex]
 
     def read(self, index: int, subindex: int = 0) -> Union[int, str]:
-        """The object's value, as the drive itself sees it."""
+        """Return the object's value, as the drive itself sees it."""
         key = (index, subindex)
         reader = self._readers.get(key)
         if reader is not None:
@@ -154,7 +154,7 @@ class DriveObjects:
     # The SDO server's node interface (canopen.sdo.SdoServer) -----------------------------
 
     def get_data(self, index: int, subindex: int, check_readable: bool = False) -> bytes:
-        """Encoded value for an SDO upload."""
+        """Return the encoded value for an SDO upload."""
         variable = self.variable(index, subindex)
         if check_readable and not variable.readable:
             raise SdoAbortedError(ABORT_WRITE_ONLY)
@@ -193,7 +193,7 @@ class DriveObjects:
     # PDOs -------------------------------------------------------------------------------
 
     def _pdo_rule(self, index: int, subindex: int, value: int) -> int:
-        """CiA 301: a mapping changes only while its PDO is disabled, within 64 bits."""
+        """Check CiA 301's rule: a mapping changes only while its PDO is disabled."""
         for communication, mapping in ((RPDO1_COMMUNICATION, RPDO1_MAPPING),
                                        (TPDO1_COMMUNICATION, TPDO1_MAPPING)):
             if index != mapping:

@@ -1,0 +1,173 @@
+"""
+Commissioning a CiA 402 drive from its EDS, against the simulated drive on a virtual bus.
+
+The simulated drive is also checked by an independent master: the ``canopen`` package's
+BaseNode402, not this project's client.
+"""
+
+import time
+import uuid
+
+import can
+import canopen
+from conftest import TickedDrive
+from flexure_ctrl.core import cia402
+from flexure_ctrl.core.cia402 import DriveState
+from flexure_ctrl.core.commissioning import commission, CommissioningError, DriveDescription
+from flexure_ctrl.core.commissioning import load_eds
+from flexure_ctrl.core.design import find_config_file
+from flexure_ctrl.core.drive_client import DriveClient
+from flexure_ctrl.sim.drive import SIMULATED_DRIVE_EDS
+import pytest
+
+NODE_ID = 5
+MASTER_ID = 100
+EDS = str(find_config_file(SIMULATED_DRIVE_EDS))
+
+
+def description(**overrides) -> DriveDescription:
+    values = {'eds_file': EDS, 'node_id': NODE_ID, 'counts_per_m': 1e6,
+              'stroke_limit_m': 0.045, 'master_node_id': MASTER_ID,
+              'master_heartbeat_period_s': 0.02, 'consumer_heartbeat_s': 0.2,
+              'quick_stop_decel_m_s2': 0.25}
+    values.update(overrides)
+    return DriveDescription(**values)
+
+
+@pytest.fixture
+def channel() -> str:
+    return f'test-commissioning-{uuid.uuid4().hex}'
+
+
+@pytest.fixture
+def rig(channel):
+    ticked = TickedDrive(channel, NODE_ID, lag_s=0.01, seed=3, rpdo_timeout_s=0.0)
+    yield ticked
+    ticked.shutdown()
+
+
+@pytest.fixture
+def bus(channel, rig):
+    master_bus = can.Bus(interface='virtual', channel=channel)
+    yield master_bus
+    master_bus.shutdown()
+
+
+def test_an_independent_canopen_master_reads_and_enables_the_simulated_drive(channel, rig):
+    network = canopen.Network()
+    network.connect(interface='virtual', channel=channel)
+    try:
+        node = canopen.BaseNode402(NODE_ID, EDS)
+        network.add_node(node)
+        assert node.sdo[0x1000].raw & 0xFFFF == 402
+        assert (node.sdo[0x1018][1].raw, node.sdo[0x1018][2].raw) == (0x0F1E, 0x0402)
+        assert node.sdo[0x1018][4].raw == NODE_ID  # serial number
+        # 39 bytes: a segmented upload.
+        assert node.sdo[0x1008].raw == 'flexure_ctrl simulated lead-screw drive'
+        assert len(node.sdo.upload(0x1008, 0)) > 4
+        node.nmt.wait_for_heartbeat(timeout=2.0)
+        assert node.nmt.state == 'PRE-OPERATIONAL'
+        node.setup_402_state_machine(read_pdos=True)
+        assert [o.index for o in node.rpdo[1]] == [0x6040]  # its own mapping
+        node.nmt.state = 'OPERATIONAL'
+        node.op_mode = 'PROFILED VELOCITY'
+        node.state = 'OPERATION ENABLED'
+        assert node.state == 'OPERATION ENABLED'
+        assert rig.drive.state is DriveState.OPERATION_ENABLED
+        node.sdo[0x60FF].raw = 5000  # 5 mm/s over SDO
+        deadline = time.monotonic() + 2.0
+        while rig.actuator.rod_position_m < 1e-3:
+            assert time.monotonic() < deadline, 'the drive did not move'
+            time.sleep(0.01)
+        node.state = 'SWITCH ON DISABLED'
+        assert rig.drive.state is DriveState.SWITCH_ON_DISABLED
+    finally:
+        network.disconnect()
+
+
+def test_commissioning_maps_the_pdos_and_sets_the_safety_objects(bus, rig):
+    found = commission(bus, description())
+    assert (found.vendor_id, found.product_code) == (0x0F1E, 0x0402)
+    assert found.position_limits_m == pytest.approx((-0.048, 0.048))
+    objects = rig.drive.objects
+    assert objects.rpdo.objects == ((0x6040, 0), (0x60FF, 0))
+    assert objects.tpdo.objects == ((0x6041, 0), (0x6064, 0))
+    assert objects.read(0x1016, 1) == (MASTER_ID << 16) | 200
+    assert objects.read(0x6007) == 3
+    assert rig.drive.quick_stop_decel_m_s2 == pytest.approx(0.25)
+    assert objects.read(0x6083) == objects.read(0x6084) == 200000
+    assert rig.drive.tpdo_period_s == pytest.approx(0.01)
+    assert rig.drive.heartbeat_period_s == pytest.approx(0.1)
+
+
+def test_a_commissioned_drive_runs_and_quick_stops_when_its_master_falls_silent(bus, rig):
+    commission(bus, description())
+    emergencies = []
+    with DriveClient(bus, NODE_ID, master_node_id=MASTER_ID,
+                     master_heartbeat_period_s=0.02) as client:
+        client.start(timeout_s=2.0)
+        end_s = time.monotonic() + 0.3
+        while time.monotonic() < end_s:
+            client.poll()
+            client.check_health()
+            client.command_velocity(0.01)
+            time.sleep(0.002)  # pacing of the loop, not a readiness check
+        assert rig.actuator.velocity_m_s > 0.005
+        silent_s = time.monotonic()  # the master dies: no heartbeat, no RPDO from here
+        deadline = silent_s + 2.0
+        while rig.drive.state is DriveState.OPERATION_ENABLED:
+            assert time.monotonic() < deadline, 'the drive did not stop'
+            time.sleep(0.001)
+        reacted_s = time.monotonic() - silent_s
+        message = bus.recv(0.5)
+        while message is not None:
+            if message.arbitration_id == cia402.EMCY_BASE + NODE_ID:
+                emergencies.append(cia402.decode_emcy(message.data).error_code)
+            message = bus.recv(0.0)
+    assert rig.drive.state is DriveState.QUICK_STOP_ACTIVE
+    # Within the consumer time (0.2 s) of the last heartbeat, sent at most 0.02 s before.
+    assert 0.2 - 0.02 <= reacted_s <= 0.2 + 0.1
+    assert 0x8130 in emergencies
+
+
+def test_a_drive_of_another_identity_is_refused_naming_expected_and_found(bus, rig):
+    with pytest.raises(CommissioningError, match=r'drive 5: product code \(0x1018:02\) is '
+                       r'0x00000402, expected 0x00000999: is this the right drive\?'):
+        commission(bus, description(product_code=0x999))
+    assert rig.drive.objects.rpdo.objects == ((0x6040, 0),)  # nothing written
+
+
+def test_an_eds_without_an_object_commissioning_needs_is_refused_naming_it(tmp_path):
+    text = open(EDS, encoding='ascii').read()
+    start = text.index('[6085]')
+    broken = tmp_path / 'no_quick_stop.eds'
+    broken.write_text(text[:start] + text[text.index('\n\n', start) + 2:], encoding='ascii')
+    with pytest.raises(CommissioningError, match=r'no_quick_stop.eds: no object 0x6085:00 '
+                       r'\(Quick stop deceleration\), which commissioning needs'):
+        load_eds(broken, NODE_ID)
+    with pytest.raises(CommissioningError, match=r'EDS .*missing.eds: cannot be read'):
+        load_eds(tmp_path / 'missing.eds', NODE_ID)
+
+
+def test_an_sdo_abort_is_reported_with_its_object_code_and_meaning(bus, rig):
+    # 1e-7 m/s^2 is 0 counts/s^2, below the EDS's LowLimit of 0x6085.
+    with pytest.raises(CommissioningError, match=r'drive 5: writing 0 to 0x6085:00 \(Quick '
+                       r'stop deceleration\): SDO abort 0x06090032 \(Value of parameter '
+                       r'written too low\)'):
+        commission(bus, description(quick_stop_decel_m_s2=1e-7))
+
+
+def test_software_limits_narrower_than_the_stroke_are_refused(bus, rig):
+    with pytest.raises(CommissioningError, match=r'software position limits 0x607D '
+                       r'\(-0.048000 .. 0.048000 m\) do not contain the stroke \+-0.05 m'):
+        commission(bus, description(stroke_limit_m=0.05))
+
+
+def test_a_silent_drive_is_a_timeout_naming_the_first_object(channel):
+    master_bus = can.Bus(interface='virtual', channel=channel)
+    try:
+        with pytest.raises(CommissioningError, match=r'drive 5: reading 0x1000:00 \(Device '
+                           r'type\): no SDO answer'):
+            commission(master_bus, description(), sdo_timeout_s=0.05)
+    finally:
+        master_bus.shutdown()
