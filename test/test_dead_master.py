@@ -1,0 +1,145 @@
+"""
+A dead PC stops the motor: SIGKILL of the actuator loop's process, the drive's reaction.
+
+The simulated rig (``flexure-ctrl sim``) and one ``actuator_loop`` run as processes, as on
+the rig. The loop commissions the drive (consumer heartbeat on the loop's own heartbeat,
+0x6007 = quick stop) and jogs it; the test kills the loop with SIGKILL mid-motion and
+watches the bus: the drive must quick-stop and send EMCY 0x8130 within its consumer
+heartbeat time of the loop's last heartbeat.
+"""
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import can
+from flexure_ctrl.core import cia402
+from flexure_ctrl.core.cia402 import DriveState
+from flexure_ctrl.core.design import find_config_file
+import pytest
+import rclpy
+from rclpy.context import Context
+from sensor_msgs.msg import JointState
+import yaml
+
+CONSUMER_HEARTBEAT_S = 0.5
+MASTER_NODE_ID = 126  # 127 - node_id: the loop's default
+NODE_ID = 1
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(('127.0.0.1', 0))
+        return probe.getsockname()[1]
+
+
+def connect_sniffer(port: int, timeout_s: float) -> can.BusABC:
+    """Open a socketcand client on the simulated bus once its server accepts connections."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection(('127.0.0.1', port), timeout=1.0):
+                break
+        except OSError:
+            assert time.monotonic() < deadline, 'the simulated rig never opened its bus'
+            time.sleep(0.1)  # the server is not listening yet: poll the port again
+    return can.Bus(interface='socketcand', channel='can0', host='127.0.0.1', port=port)
+
+
+@pytest.fixture
+def processes():
+    started = []
+    yield started
+    for process in started:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(timeout=20.0)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_time(
+        processes, tmp_path):
+    can_port = free_port()
+    # A node's own section in a parameter file wins over -p: override in a file of its own.
+    overrides = tmp_path / 'overrides.yaml'
+    overrides.write_text(yaml.safe_dump({'/actuator_1': {'ros__parameters': {
+        'can': {'port': can_port}, 'drive': {'consumer_heartbeat_s': CONSUMER_HEARTBEAT_S}}}}))
+    processes.append(subprocess.Popen(
+        [sys.executable, '-m', 'flexure_ctrl.cli.main', 'sim', '--can-port', str(can_port),
+         '--tracker-port', str(free_port())], stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL))
+    sniffer = connect_sniffer(can_port, 30.0)
+    loop = subprocess.Popen(
+        [sys.executable, '-m', 'flexure_ctrl.nodes.actuator_loop', '--ros-args',
+         '--params-file', str(find_config_file('designs/cfa.yaml')),
+         '--params-file', str(find_config_file('sim.yaml')), '--params-file', str(overrides),
+         '-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    processes.append(loop)
+    context = Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('dead_master_probe', context=context)
+    publisher = node.create_publisher(JointState, '/flexure/actuator_setpoints', 10)
+    try:
+        frames = []  # (bus time s, cob id, data)
+
+        def receive(until_s, stop=lambda: False):
+            while time.monotonic() < until_s and not stop():
+                message = sniffer.recv(0.02)
+                if message is not None:
+                    frames.append((message.timestamp, message.arbitration_id,
+                                   bytes(message.data)))
+
+        def statusword_state():
+            for _, cob_id, data in reversed(frames):
+                if cob_id == cia402.TPDO1_BASE + NODE_ID and len(data) == 6:
+                    return cia402.decode_state(cia402.decode_pdo(data)[0])
+            return None
+
+        def positions():
+            return [(t, cia402.decode_pdo(d)[1] * 1e-6) for t, c, d in frames
+                    if c == cia402.TPDO1_BASE + NODE_ID and len(d) == 6]
+
+        receive(time.monotonic() + 60.0,
+                lambda: statusword_state() is DriveState.OPERATION_ENABLED)
+        assert statusword_state() is DriveState.OPERATION_ENABLED, 'the loop never enabled'
+        # Jog: a setpoint 10 mm away, restated every 20 ms, until the rod moves.
+        setpoint = JointState(name=['actuator_1'], position=[0.010], velocity=[0.0])
+        deadline = time.monotonic() + 30.0
+        while not positions() or positions()[-1][1] < 0.003:
+            assert time.monotonic() < deadline, 'the loop never moved its drive'
+            setpoint.header.stamp = node.get_clock().now().to_msg()
+            publisher.publish(setpoint)
+            receive(time.monotonic() + 0.02)
+        os.kill(loop.pid, signal.SIGKILL)
+        killed_s = time.time()
+        receive(time.monotonic() + CONSUMER_HEARTBEAT_S + 1.0,
+                lambda: statusword_state() is DriveState.QUICK_STOP_ACTIVE)
+        receive(time.monotonic() + 0.3)
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+        sniffer.shutdown()
+    last_heartbeat_s = max(t for t, c, _ in frames if c == cia402.HEARTBEAT_BASE + MASTER_NODE_ID)
+    emergencies = [(t, cia402.decode_emcy(d).error_code) for t, c, d in frames
+                   if c == cia402.EMCY_BASE + NODE_ID]
+    assert [code for _, code in emergencies] == [0x8130], emergencies
+    reacted_s = emergencies[0][0] - last_heartbeat_s
+    print(f'loop killed {killed_s - last_heartbeat_s:.3f} s after its last heartbeat; the '
+          f'drive quick-stopped {reacted_s:.3f} s after it (consumer time '
+          f'{CONSUMER_HEARTBEAT_S} s)')
+    # The drive acts once the consumer time has passed, at its next 1 ms tick; 0.1 s for
+    # the simulator's scheduling on this shared machine.
+    assert CONSUMER_HEARTBEAT_S <= reacted_s <= CONSUMER_HEARTBEAT_S + 0.1
+    assert statusword_state() is DriveState.QUICK_STOP_ACTIVE
+    # It was moving when the loop died and is still after its quick-stop ramp.
+    moving = [p for t, p in positions() if t < last_heartbeat_s]
+    assert moving[-1] - moving[-10] > 1e-5
+    after = [p for t, p in positions() if t > emergencies[0][0] + 0.1]
+    assert len(after) > 5 and max(after) - min(after) < 1e-4
