@@ -335,7 +335,7 @@ def main() -> int:
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     # python-can's socketcand client says so whenever a TCP read ends inside a frame.
-    logging.getLogger('can.socketcand').setLevel(logging.WARNING)
+    logging.getLogger('can.interfaces.socketcand').setLevel(logging.ERROR)
     loop_core = sorted(os.sched_getaffinity(0))[-1]
     default = measure(arguments, pinned=False)
     total = report('(a) as up --sim runs by default', default, arguments.toggles)

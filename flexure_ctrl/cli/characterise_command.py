@@ -144,7 +144,7 @@ def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: in
     Not the inverse solver nor the trajectory generator: the characterisation commands
     the actuators itself. Returns whether all came up.
     """
-    from flexure_ctrl.cli.up_command import _node_command
+    from flexure_ctrl.cli.up_command import _node_command, LIFECYCLE_ACTIVE
 
     overrides = folder / 'overrides.yaml'
     overrides.write_text(yaml.safe_dump({
@@ -158,9 +158,9 @@ def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: in
                          str(can_port), '--tracker-port', str(tracker_port)], 'sim: ready')]
     nodes = (('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
              ('actuator_1', 'actuator_loop',
-              ['-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'], 'operation enabled'),
+              ['-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'], LIFECYCLE_ACTIVE),
              ('actuator_2', 'actuator_loop',
-              ['-r', '__node:=actuator_2', '-p', 'actuator:=actuator_2'], 'operation enabled'))
+              ['-r', '__node:=actuator_2', '-p', 'actuator:=actuator_2'], LIFECYCLE_ACTIVE))
     for name, module, node_arguments, marker in nodes:
         launches.append((name, _node_command(module, node_arguments + [
             '--params-file', str(design_file), '--params-file', str(rig_config),

@@ -29,8 +29,11 @@ import yaml
 PR_SET_PDEATHSIG = 1
 STOP_TIMEOUT_S = 8.0
 READY_TIMEOUT_S = 60.0
+# A ready marker: the process is a managed node, up once configured and activated.
+LIFECYCLE_ACTIVE = object()
 
-# (process name, module, extra ROS arguments, line it prints once it is up), in start
+# (process name, module, extra ROS arguments, line it prints once it is up or
+# LIFECYCLE_ACTIVE), in start
 # order; stopped in reverse. The actuator loops come last and one at a time: once a drive
 # is enabled its RPDO timeout runs, and Python processes importing numpy and scipy on
 # the same cores could starve the 500 Hz loop past it.
@@ -49,12 +52,13 @@ NODES = (
     ('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
     ('inverse_solver', 'inverse_solver', [], 'branch'),
     ('trajectory_generator', 'trajectory_generator', [], 'call ~/start'),
-    # A loop is up when its drive is enabled. A run starts only once the generator has
-    # heard both loops say so on their status topics, whatever up has seen.
+    # A loop is a managed node: up configures and activates it, and it is up once active
+    # (its drive commissioned and enabled). A run starts only once the generator has heard
+    # both loops say so on their status topics, whatever up has seen.
     ('actuator_1', 'actuator_loop', ['-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'],
-     'operation enabled'),
+     LIFECYCLE_ACTIVE),
     ('actuator_2', 'actuator_loop', ['-r', '__node:=actuator_2', '-p', 'actuator:=actuator_2'],
-     'operation enabled'),
+     LIFECYCLE_ACTIVE),
 )
 
 
@@ -121,6 +125,8 @@ class ProcessGroup:
         self._print_lock = threading.Lock()
         self.first_exit = threading.Event()
         self.stopping = False
+        self._lifecycle = None  # a LifecycleClient once a managed node is started
+        self._cancelled = threading.Event()
 
     def say(self, name: str, line: str) -> None:
         with self._print_lock:
@@ -128,15 +134,20 @@ class ProcessGroup:
             self._out.flush()
 
     def start(self, name: str, command: List[str],
-              ready_marker: Union[str, Tuple[str, ...], None] = None, niceness: int = 0):
+              ready_marker: Union[str, Tuple[str, ...], object, None] = None,
+              niceness: int = 0):
         """
         Start ``command``, its niceness raised by ``niceness`` (>= 0: lower priority).
 
         The returned event is set once every ``ready_marker`` (one string or several) has
-        appeared in the output, or at exit.
+        appeared in the output, or, for :data:`LIFECYCLE_ACTIVE`, once the node named
+        ``name`` is configured and active; or at exit. A managed node that fails a
+        transition counts as an exit.
         """
         ready = threading.Event()
-        awaited = {ready_marker} if isinstance(ready_marker, str) else set(ready_marker or ())
+        managed = ready_marker is LIFECYCLE_ACTIVE
+        awaited = set() if managed or ready_marker is None else (
+            {ready_marker} if isinstance(ready_marker, str) else set(ready_marker))
 
         def prepare_child() -> None:
             _die_with_parent()
@@ -165,16 +176,32 @@ class ProcessGroup:
             ready.set()
 
         threading.Thread(target=pump, name=f'pump-{name}', daemon=True).start()
+        if managed:
+            if self._lifecycle is None:
+                # rclpy only here: the CLI's other commands run without ROS set up.
+                from flexure_ctrl.cli.lifecycle_client import LifecycleClient
+                self._lifecycle = LifecycleClient()
+
+            def bring_up():
+                problem = self._lifecycle.bring_up(name, self._cancelled)
+                if problem and not self.stopping:
+                    self.say('up', problem)
+                    self.first_exit.set()
+                ready.set()
+            threading.Thread(target=bring_up, name=f'lifecycle-{name}', daemon=True).start()
         return process, ready
 
     def stop_all(self) -> int:
         """Stop children newest first; return 0 if all ended cleanly."""
         self.stopping = True
+        self._cancelled.set()
         worst = 0
         for name, process in reversed(self.children):
             code = self._stop(name, process)
             if code not in (0, -signal.SIGINT, 130):
                 worst = 1
+        if self._lifecycle is not None:
+            self._lifecycle.shutdown()
         return worst
 
     def _stop(self, name: str, process: subprocess.Popen) -> int:

@@ -47,7 +47,7 @@ def open_bus(interface: str, channel: str, host: str = '127.0.0.1',
         with socket.create_connection((host, port), timeout=1.0):
             pass
         # It also warns whenever a TCP read ends inside a frame, which is normal.
-        logging.getLogger('can.socketcand').setLevel(logging.ERROR)
+        logging.getLogger('can.interfaces.socketcand').setLevel(logging.ERROR)
         return can.Bus(interface=interface, channel=channel, host=host, port=port,
                        tcp_tune=True)
     return can.Bus(interface=interface, channel=channel)
@@ -89,13 +89,15 @@ class DriveLink:
         self._deadline_ns: Optional[int] = None
         self._next_try_ns = 0
 
-    def try_connect(self, now_ns: int) -> Optional[bool]:
+    def try_connect(self, now_ns: int, enable: bool = True) -> Optional[bool]:
         """
         Try the bus and the drive once, if a try is due.
 
-        :returns: True once the drive is enabled; False after a failed try (then
-            :attr:`problem` says why); None when no try was due.
-        :raises DriveConnectError: still failing at ``connect_timeout_s``.
+        :param enable: also bring the drive to Operation Enabled; else stop once it is
+            commissioned.
+        :returns: True once the drive is commissioned (and enabled, if asked); False after
+            a failed try (then :attr:`problem` says why); None when no try was due.
+        :raises DriveConnectError: still failing at ``connect_timeout_s``, or refused.
         """
         if now_ns < self._next_try_ns:
             return None
@@ -108,14 +110,17 @@ class DriveLink:
                 self.bus = open_bus(*self._bus_arguments)
             if self.client is None:
                 self.client = self._commissioned_client()
-            self.client.start(timeout_s=max(0.05, min(self._attempt_s, remaining_s)))
+            if enable:
+                self.client.start(timeout_s=max(0.05, min(self._attempt_s, remaining_s)))
         except CommissioningError as error:
             if not isinstance(error, CommissioningTimeoutError):
                 self.problem = str(error)
+                self._deadline_ns = None
                 raise DriveConnectError(self.problem) from None
             text = str(error)
             if remaining_s <= 0.0:
                 self.problem = f'not connected after {self.connect_timeout_s} s: {text}'
+                self._deadline_ns = None
                 raise DriveConnectError(self.problem) from None
             self.problem = f'not connected: {text}'
             return False
@@ -127,10 +132,12 @@ class DriveLink:
                 self._close_bus()
             if remaining_s <= 0.0:
                 self.problem = f'not connected after {self.connect_timeout_s} s: {text}'
+                self._deadline_ns = None
                 raise DriveConnectError(self.problem) from error
             self.problem = f'not connected: {text}'
             return False
         self.problem = ''
+        self._deadline_ns = None  # the next connect has a timeout of its own
         return True
 
     def _commissioned_client(self) -> DriveClient:

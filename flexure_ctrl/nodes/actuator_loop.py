@@ -18,9 +18,19 @@ with a position the drive has stopped reporting; ``/flexure/<actuator>/status``
 (``diagnostic_msgs/DiagnosticStatus``, latched: ready, the trajectory held, what it
 follows, its problem) on every change; ``/diagnostics`` at 1 Hz and on every change.
 
+Life cycle (a managed node, as ros2_canopen's and ros2_control's hardware drivers are;
+``flexure-ctrl up`` drives it): ``configure`` opens the bus and commissions the drive from
+its EDS (:mod:`flexure_ctrl.core.commissioning`), retrying up to ``connect_timeout_s``;
+``activate`` enables the drive and starts the loop; ``deactivate`` ramps to zero velocity
+and disables the drive; ``cleanup`` closes the bus. A failed transition says why on the
+status topic; an error in one leaves the drive disabled and the bus closed.
+
 Safety: a drive fault, a lost heartbeat, a lost bus or an NMT state change stops
 commanding (one quick-stop frame) and latches ERROR until ``~/reset``; ``~/quick_stop``
-latches likewise. The run owner then ends the run on the other loop too. A run owner
+latches likewise; after a lost bus ``~/reset`` opens a new bus and commissions the drive
+again. The loop sends its own CANopen heartbeat, which the commissioned drive watches: if
+the process or the PC dies, the drive quick-stops by itself. The run owner then ends the
+run on the other loop too. A run owner
 silent for ``watchdog_timeout_s``, or a reading beyond ``path_tolerance_m`` from the plan,
 ramps the command to zero and holds it. :meth:`ActuatorLoop.safe_stop` (run on any
 shutdown) leaves the drive disabled at zero velocity and closes the bus.
@@ -41,6 +51,7 @@ import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core.actuator_drive import ActuatorDrive, Mode
 from flexure_ctrl.core.commissioning import load_eds
+from flexure_ctrl.core.drive_client import DriveError
 from flexure_ctrl.core.drive_link import DriveConnectError, DriveLink
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.ploop import ActuatorController, LoopLimits, ProportionalLoop
@@ -50,7 +61,7 @@ from flexure_ctrl.nodes.actuator_support import declare_loop_parameters, diagnos
 from flexure_ctrl.nodes.actuator_support import level_of, LoopThread, status_of
 from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message, stamp_ns_of
 from flexure_ctrl.nodes.run_messages import word_message
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -58,10 +69,10 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 _NS_PER_S = 1_000_000_000
-# Start-up: the connect timer ticks faster than DriveLink retries, so that the first try
-# is prompt.
+# configure: how often DriveLink is asked whether a try is due (it paces its own retries).
 _CONNECT_TICK_S = 0.02
 _RESET_TIMEOUT_S = 1.0
+_ACTIVATE_TIMEOUT_S = 3.0
 # How long safe_stop() waits for the drive to confirm it is disabled (s).
 _DISABLE_CONFIRM_S = 0.2
 # GIL hand-over interval (s) in the node's process: a loop thread waking up waits at most
@@ -73,12 +84,12 @@ class ActuatorLoopConfigError(FlexureCtrlError, ValueError):
     """A parameter of the actuator loop is missing or invalid."""
 
 
-class ActuatorLoop(Node):
+class ActuatorLoop(LifecycleNode):
     """P-loop of one lead-screw actuator, commanding its CiA 402 drive over CAN."""
 
     def __init__(self, node_name: str = 'actuator_loop', **kwargs) -> None:
         """
-        Declare parameters, wire topics and services; connect once spinning.
+        Declare parameters, read the drive's EDS, wire topics and services; unconfigured.
 
         :raises ActuatorLoopConfigError: a missing or invalid parameter.
         :raises rclpy.exceptions.InvalidParameterValueException: a value out of range.
@@ -100,12 +111,11 @@ class ActuatorLoop(Node):
         # executor's callbacks. Re-entrant: service handlers call helpers.
         self._lock = threading.RLock()
         self._quick_stop_requested = False
-        self._last_connect_error = ''
         self._safe_stopped = False
+        self._shutting_down = threading.Event()
         self._publishing = True
-        self.thread = LoopThread(self.rate_hz, self._cycle, self._lock, p.realtime_priority,
-                                 self.get_logger(), name=f'{self.actuator}-loop',
-                                 on_error=self._on_loop_error, cpu_affinity=p.cpu_affinity)
+        self.thread = self._new_thread()
+        self.drive.problem = 'unconfigured: configure opens the bus and commissions the drive'
 
         self._state = JointState(name=[self.actuator], position=[0.0], velocity=[0.0])
         self._status_name = common.STATUS_PREFIX + self.actuator
@@ -134,7 +144,6 @@ class ActuatorLoop(Node):
         self.add_post_set_parameters_callback(self._on_parameters_set)
         # The loop thread asks the executor to report through this.
         self._report_guard = self.create_guard_condition(self.publish_diagnostics)
-        self.connect_timer = self.create_timer(_CONNECT_TICK_S, self._on_connect_tick)
         self.diagnostics_timer = self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(
             f'{self.actuator}: drive node {p.node_id} on {p.can_interface} {p.can_channel}, '
@@ -165,38 +174,127 @@ class ActuatorLoop(Node):
                     setattr(self.loop, parameter.name, parameter.value)
                 self.get_logger().info(f'{parameter.name} set to {parameter.value}')
 
-    def _on_connect_tick(self) -> None:
-        """Try the bus and the drive once if due; on success start the loop."""
-        if self.mode is not Mode.CONNECTING or self._safe_stopped:
-            self.connect_timer.cancel()
-            return
-        try:
-            connected = self.link.try_connect(time.monotonic_ns())
-        except DriveConnectError as error:
-            self.drive.problem = str(error)
-            self.get_logger().fatal(self.drive.problem)
-            self.connect_timer.cancel()
-            self.publish_diagnostics()
-            raise
-        if connected is None:
-            return
-        if not connected:
-            self.drive.problem = self.link.problem
-            if self.problem != self._last_connect_error:
-                self._last_connect_error = self.problem
-                self.get_logger().warning(f'{self.problem}; retrying')
-                self.publish_diagnostics()
-            return
-        self.connect_timer.cancel()
-        client = self.link.client
-        self.get_logger().info(f'drive node {client.node_id} operation enabled at '
-                               f'{client.position_m * 1e3:+.3f} mm')
+    def _new_thread(self) -> LoopThread:
+        p = self.p
+        return LoopThread(self.rate_hz, self._cycle, self._lock, p.realtime_priority,
+                          self.get_logger(), name=f'{self.actuator}-loop',
+                          on_error=self._on_loop_error, cpu_affinity=p.cpu_affinity)
+
+    # ------------------------------------------------------------------ life cycle
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Open the bus and commission the drive, retrying up to ``connect_timeout_s``."""
+        last_problem = ''
+        while True:
+            if self._shutting_down.is_set() or not self.context.ok():
+                return TransitionCallbackReturn.FAILURE
+            try:
+                connected = self.link.try_connect(time.monotonic_ns(), enable=False)
+            except DriveConnectError as error:
+                self._refuse(f'configure failed: {error}')
+                return TransitionCallbackReturn.FAILURE
+            if connected:
+                break
+            if connected is False and self.link.problem != last_problem:
+                last_problem = self.link.problem
+                with self._lock:
+                    self.drive.problem = last_problem
+                    self.drive.events.append((logging.WARNING, f'{last_problem}; retrying'))
+                    self._report()
+            self._shutting_down.wait(_CONNECT_TICK_S)  # DriveLink paces the tries
+        found = self.link.commissioned
         with self._lock:
+            self.drive.mode = Mode.STOPPED
+            self.drive.problem = 'inactive: activate enables the drive'
+            self.drive.events.append((logging.INFO, (
+                f'drive node {self.p.node_id} commissioned: vendor 0x{found.vendor_id:08X}, '
+                f'product 0x{found.product_code:08X}, software limits '
+                f'{found.position_limits_m[0] * 1e3:+.1f} .. '
+                f'{found.position_limits_m[1] * 1e3:+.1f} mm')))
+            self._report()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Enable the drive (CiA 402 Operation Enabled) and start the loop thread."""
+        with self._lock:
+            client = self.link.client
+            try:
+                client.start(timeout_s=_ACTIVATE_TIMEOUT_S)
+            except (DriveError, can.CanError, OSError) as error:
+                self._refuse(f'activate failed: {type(error).__name__}: {error}')
+                return TransitionCallbackReturn.FAILURE
+            self.get_logger().info(f'drive node {client.node_id} operation enabled at '
+                                   f'{client.position_m * 1e3:+.3f} mm')
             self.drive.attach(client)
             if self._quick_stop_requested:
                 self.drive.latch(Mode.QUICK_STOPPED, 'quick stop requested')
             self._report()
+            self.thread = self._new_thread()
         self.thread.start()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Ramp to zero velocity, stop the loop thread and disable the drive."""
+        with self._lock:
+            self.controller.stop('deactivated')
+        ramp_s = self.limits.max_speed_m_s / self.p.watchdog_decel_m_s2 + 0.1
+        deadline_s = time.monotonic() + ramp_s
+        while self.thread.alive and time.monotonic() < deadline_s:
+            with self._lock:
+                if self.drive.mode is not Mode.RUNNING or self.drive.commanded_m_s == 0.0:
+                    break
+            self._shutting_down.wait(1.0 / self.rate_hz)  # the loop thread ramps meanwhile
+        self.thread.stop()
+        with self._lock:
+            self._disable()
+            self.drive.mode, self.drive.problem = Mode.STOPPED, 'inactive (deactivated)'
+            self._report()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Close the bus (the drive is already disabled)."""
+        with self._lock:
+            self.link.close(confirm_timeout_s=0.0)
+            self.drive.mode = Mode.CONNECTING
+            self.drive.problem = 'unconfigured: configure opens the bus and commissions the drive'
+            self._report()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Leave the drive disabled and the bus closed."""
+        self.safe_stop()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Leave the drive disabled and the bus closed after an error in a transition."""
+        self.thread.stop()
+        with self._lock:
+            self._disable()
+            self.link.close(confirm_timeout_s=0.0)
+            self.drive.mode = Mode.FAULTED
+            self.drive.problem = (f'error in a transition from {state.label}: drive disabled, '
+                                  'bus closed; configure again')
+            self.drive.events.append((logging.ERROR, self.drive.problem))
+            self._report()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _refuse(self, problem: str) -> None:
+        """Say why a transition failed: the log, the status topic, /diagnostics."""
+        with self._lock:
+            self.drive.problem = problem
+            self.drive.events.append((logging.ERROR, problem))
+            self._report()
+        self.publish_diagnostics()
+
+    def _disable(self) -> None:
+        """Disable the drive at zero velocity if it was started (lock held); never raises."""
+        client = self.link.client
+        if client is None or not client.started:
+            return
+        try:
+            client.disable(confirm_timeout_s=_DISABLE_CONFIRM_S)
+        except (can.CanError, OSError) as error:
+            self.drive.events.append((logging.ERROR, f'could not disable the drive: {error}'))
 
     # ------------------------------------------------------------------ the loop
 
@@ -370,9 +468,9 @@ class ActuatorLoop(Node):
             if self._safe_stopped:
                 return
             self._safe_stopped = True
+        self._shutting_down.set()
         self.thread.stop()
-        for timer in (self.connect_timer, self.diagnostics_timer):
-            timer.cancel()
+        self.diagnostics_timer.cancel()
         with self._lock:
             client = self.link.client
             try:
