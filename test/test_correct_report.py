@@ -47,8 +47,10 @@ def realised(command_xy):
     return np.column_stack([command_xy[:, 0] + 1e-3, 0.95 * command_xy[:, 1]])
 
 
-def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=True):
+def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=True,
+               noise_m=0.0, seed=0):
     """Record runs of the sine as the nodes publish them; return the bag folder."""
+    rng = np.random.default_rng(seed)
     with BagWriter(folder) as bag:
         for topic, type_name in (('/flexure/demand', 'geometry_msgs/msg/PointStamped'),
                                  ('/flexure/command', 'geometry_msgs/msg/PointStamped'),
@@ -75,7 +77,10 @@ def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=Tr
             keep = np.ones(tracker.size, bool) if drop is None else ~drop(tracker_path_s)
             tracked_command = (SINE.sample(np.clip(tracker_path_s, 0.0, PERIOD_S))[0]
                                if command_of_t is None else command_of_t(tracker_path_s))
-            for t_ns, xy in zip(tracker[keep], realised(tracked_command)[keep]):
+            tracked = realised(tracked_command)[keep]
+            if noise_m:
+                tracked = tracked + rng.normal(0.0, noise_m, tracked.shape)
+            for t_ns, xy in zip(tracker[keep], tracked):
                 events.append((int(t_ns), '/flexure/tracker/end', point(t_ns, xy)))
             for t_ns, topic, message in sorted(events, key=lambda e: e[0]):
                 bag.write(topic, serialize_message(message), t_ns)
@@ -161,3 +166,48 @@ def test_demo_refuses_a_bad_gain_before_starting_the_rig(tmp_path, capsys):
     assert main(['demo', '--gain', '3', '--out', str(tmp_path / 'demo')]) == 2
     assert 'gain must be in (0, 2]' in capsys.readouterr().err
     assert not (tmp_path / 'demo').exists()
+
+
+def learned_from(command_file):
+    learned = WaypointPath.from_file(command_file)
+    return lambda t: learned.sample(np.clip(t, 0.0, PERIOD_S))[0]
+
+
+def test_correct_takes_a_learning_series_and_uses_the_later_gain(tmp_path, capsys):
+    first = write_runs(tmp_path / 'run_0', [T0_NS])
+    assert main(['correct', str(first), '--out', str(tmp_path / 'c1.csv'),
+                 '--cutoff-hz', '0']) == 0
+    second = write_runs(tmp_path / 'run_1', [T0_NS + 30 * 10**9],
+                        command_of_t=learned_from(tmp_path / 'c1.csv'))
+    out = tmp_path / 'c2.csv'
+    assert main(['correct', str(first), str(second), '--out', str(out), '--cutoff-hz', '0',
+                 '--later-gain', '0.5', '--spike-threshold', '0']) == 0
+    # The second correction learns from the latest run at the later gain:
+    # c2 = c1 + 0.5 (p - e1).
+    expected = corrected_command(path_errors(load_runs(second)[-1]), gain=0.5, cutoff_hz=None)
+    assert np.allclose(WaypointPath.from_file(out).sample(expected.t_s)[0],
+                       expected.points_m, atol=1e-8)
+    printed = capsys.readouterr().out
+    assert 'run 0 (' in printed and 'run 1 (' in printed and 'gain 0.5' in printed
+
+
+def test_report_with_a_repeat_gives_the_repeatability_floor(tmp_path, capsys):
+    sigma = 20e-6
+    first = write_runs(tmp_path / 'run_0', [T0_NS], noise_m=sigma, seed=1)
+    assert main(['correct', str(first), '--out', str(tmp_path / 'c1.csv')]) == 0
+    runs = [write_runs(tmp_path / f'run_1{name}', [T0_NS + offset * 10**9], noise_m=sigma,
+                       seed=seed, command_of_t=learned_from(tmp_path / 'c1.csv'))
+            for name, offset, seed in (('', 30, 2), ('_again', 60, 3))]
+    out = tmp_path / 'report'
+    assert main(['report', str(first), str(runs[0]), '--repeat', str(runs[1]),
+                 '--out', str(out)]) == 0
+    summary = json.loads((out / 'summary.json').read_text())
+    floor = summary['repeatability_floor']
+    # The model rig repeats exactly: only the tracker noise differs between the two runs.
+    assert floor['rms_x_mm'] == pytest.approx(1e3 * sigma, rel=0.1)
+    assert floor['rms_y_mm'] == pytest.approx(1e3 * sigma, rel=0.1)
+    adjusted = summary['iterations'][1]
+    assert adjusted['max_over_floor_y'] == pytest.approx(
+        adjusted['max_abs_error_y_mm'] / floor['max_abs_y_mm'])
+    printed = capsys.readouterr().out
+    assert '\nfloor ' in printed and 'last run max / floor max' in printed

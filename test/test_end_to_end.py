@@ -419,7 +419,7 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
         [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--period', '14',
          '--iterations', '1', '--quiet', '--out', str(out), '--bag-dir', str(tmp_path / 'bags'),
          '--can-port', str(free_port()), '--tracker-port', str(free_port())],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=300, env=os.environ)
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=400, env=os.environ)
     assert result.returncode == 0, result.stdout[-3000:]
     summary = json.loads((out / 'summary.json').read_text())
     original, adjusted = summary['iterations']
@@ -458,3 +458,12 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
     assert "the paper's Table 1" in result.stdout
     # The learned command path the second run used, in the file trajectory_generator took.
     assert (out / 'command_1.csv').read_text().startswith('t_s,x_m,y_m')
+    # The last command run once more: the floor, the error that does not repeat. It is a
+    # fraction of the learned run's error and above the tracker's own noise (0.02 mm).
+    floor = summary['repeatability_floor']
+    for axis in ('x', 'y'):
+        assert 0.015 < floor[f'rms_{axis}_mm'] < adjusted[f'rms_error_{axis}_mm'], floor
+        assert floor[f'rms_{axis}_mm'] < floor[f'max_abs_{axis}_mm'], floor
+        assert adjusted[f'max_over_floor_{axis}'] == pytest.approx(
+            adjusted[f'max_abs_error_{axis}_mm'] / floor[f'max_abs_{axis}_mm'])
+    assert 'floor' in result.stdout and 'repeatability floor' in result.stdout

@@ -26,6 +26,7 @@ from flexure_ctrl.cli.up_command import check_period
 from flexure_ctrl.core.correction import (DEFAULT_CUTOFF_HZ, DEFAULT_SPIKE_THRESHOLD,
                                           IterativeCorrector, path_errors)
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.repeatability import repeatability_floor
 from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.core.runs import load_last_run, RUN_TOPICS
 
@@ -74,6 +75,10 @@ def add_parser(commands) -> None:
                              'errors of a run that the run before did not have, this many '
                              'robust standard deviations out; 0 learns everything '
                              '(default: %(default)s)')
+    parser.add_argument('--repeat-last', type=int, default=1, metavar='N',
+                        help='after the last correction, run its command path once more (1) '
+                             'to measure the repeatability floor, the error that does not '
+                             'repeat from run to run; 0 skips it (default: %(default)s)')
     parser.add_argument('--sim-config', type=Path, metavar='FILE',
                         help='simulator knobs overriding config/simulator.yaml')
     parser.add_argument('--out', type=Path, default=Path('out/demo'), metavar='DIR',
@@ -326,6 +331,8 @@ def run(arguments: argparse.Namespace) -> int:
     check_period(arguments.period)  # passed on to flexure-ctrl up: refused here, before it
     if arguments.iterations < 0:
         raise DemoError('--iterations must be 0 or more')
+    if arguments.repeat_last not in (0, 1):
+        raise DemoError(f'--repeat-last must be 0 or 1, got {arguments.repeat_last}')
     if not arguments.spike_threshold >= 0.0:
         raise DemoError('--spike-threshold must be 0 (learn everything) or more')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -338,8 +345,9 @@ def run(arguments: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     up = _Process(_up_command(arguments), arguments.quiet)
     operator = None
-    progress = _Progress(arguments.iterations + 1)
+    progress = _Progress(arguments.iterations + 1 + arguments.repeat_last)
     rows = []
+    floor = None
     try:
         if up.wait_for_line(lambda line: 'all processes up' in line, UP_TIMEOUT_S) is None:
             raise DemoError('the simulated rig and nodes did not come up:\n'
@@ -371,6 +379,17 @@ def run(arguments: argparse.Namespace) -> int:
             row['gain'] = corrector.gain
             command_file = command.write_csv(out / f'command_{index + 1}.csv')
             operator.set_correction_file(str(command_file.resolve()))
+        if arguments.repeat_last:
+            # The command of the last run, run again: what differs is what does not repeat.
+            index = len(rows)
+            bag = _record_run(up, operator, arguments.bag_dir,
+                              f'demo_{arguments.design}_{stamp}_repeat', arguments, progress,
+                              index)
+            floor = repeatability_floor(corrector.iterations[-1].errors,
+                                        path_errors(load_last_run(bag)))
+            progress.line(f'[demo] repeatability floor: max {1e3 * floor.max_abs_m[0]:.3f} / '
+                          f'{1e3 * floor.max_abs_m[1]:.3f} mm, rms {1e3 * floor.rms_m[0]:.3f}'
+                          f' / {1e3 * floor.rms_m[1]:.3f} mm in x / y  ({bag})')
     except DemoError as error:
         print(f'flexure-ctrl demo: {error}', file=sys.stderr)
         return 1
@@ -379,10 +398,13 @@ def run(arguments: argparse.Namespace) -> int:
             operator.close()
         up.interrupt(60.0)
     report_command.add_reductions(rows)
-    report_command.print_table(arguments.design, rows)
     summary = {'design': arguments.design, 'period_s': arguments.period,
                'iterations': rows,
                'paper_table_1': report_command.PAPER_TABLE_1.get(arguments.design)}
+    if floor is not None:
+        report_command.add_floor(rows, floor)
+        summary['repeatability_floor'] = floor.summary()
+    report_command.print_table(arguments.design, rows, floor)
     summary_path = report_command.write_summary(out, summary)
     errors = [iteration.errors for iteration in corrector.iterations]
     pictures = report_command.plot(out, arguments.design, errors)

@@ -4,16 +4,19 @@
 The first bag is the original (uncorrected) run, the later ones the adjusted runs in
 order. For each, the maximum ``|epsilon_x|``, ``|epsilon_y|`` over the path (Eq. 7, at
 the tracker's stamps) and the reduction from the original, then plots like the paper's
-Figs. 13/16 (trajectories) and 17 (errors against time).
+Figs. 13/16 (trajectories) and 17 (errors against time). With ``--repeat BAG``, a second
+run of the last bag's command, it also gives the repeatability floor
+(:mod:`flexure_ctrl.core.repeatability`) and each run's maximum over it.
 """
 
 import argparse
 import json
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence
 
 from flexure_ctrl.core.correction import (DEFAULT_CUTOFF_HZ, path_errors, PathErrors,
                                           reduction_percent)
+from flexure_ctrl.core.repeatability import repeatability_floor, RepeatabilityFloor
 from flexure_ctrl.core.runs import load_last_run
 
 # The paper's Table 1: maximum errors (mm) of the original and adjusted runs, and the
@@ -35,6 +38,10 @@ def add_parser(commands) -> None:
                     'and writes summary.json, trajectories.png and errors.png to --out.')
     parser.add_argument('bags', nargs='+', type=Path, metavar='BAG',
                         help='bag folders (or .mcap files), original run first')
+    parser.add_argument('--repeat', type=Path, metavar='BAG',
+                        help="a second run of the last bag's command path: the two give the "
+                             'repeatability floor (the error that does not repeat), printed '
+                             'as a row and written to summary.json')
     parser.add_argument('--design', default='',
                         help="design name, to print the paper's figures beside ours")
     parser.add_argument('--out', type=Path, default=Path('out/report'), metavar='DIR',
@@ -61,8 +68,16 @@ def add_reductions(rows: List[Dict]) -> None:
         row['reduction_x_percent'], row['reduction_y_percent'] = reduction_percent(first, later)
 
 
-def print_table(design: str, rows: Sequence[Dict]) -> None:
-    """Print Table 1 for the iterations in ``rows`` (with reductions)."""
+def add_floor(rows: List[Dict], floor: RepeatabilityFloor) -> None:
+    """Add each row's maximum errors over the floor's maxima."""
+    for row in rows:
+        ratio = floor.ratio([row['max_abs_error_x_mm'] * 1e-3, row['max_abs_error_y_mm'] * 1e-3])
+        row['max_over_floor_x'], row['max_over_floor_y'] = float(ratio[0]), float(ratio[1])
+
+
+def print_table(design: str, rows: Sequence[Dict],
+                floor: Optional[RepeatabilityFloor] = None) -> None:
+    """Print Table 1 for the iterations in ``rows`` (with reductions), and the floor."""
     print(f'\n{design or "run"}: maximum errors from the desired trajectory over the path '
           "(the paper's Table 1)")
     print(f'{"iteration":<14}{"max|e_x| mm":>12}{"max|e_y| mm":>12}{"red. x %":>10}'
@@ -74,6 +89,13 @@ def print_table(design: str, rows: Sequence[Dict]) -> None:
         print(f'{name:<14}{row["max_abs_error_x_mm"]:12.3f}{row["max_abs_error_y_mm"]:12.3f}'
               f'{reductions or " " * 20}{row["rms_error_x_mm"]:12.3f}'
               f'{row["rms_error_y_mm"]:12.3f}')
+    if floor is not None:
+        print(f'{"floor":<14}{1e3 * floor.max_abs_m[0]:12.3f}{1e3 * floor.max_abs_m[1]:12.3f}'
+              f'{" " * 20}{1e3 * floor.rms_m[0]:12.3f}{1e3 * floor.rms_m[1]:12.3f}')
+        last = rows[-1]
+        print(f'floor: the error of one run that does not repeat (two runs of the last '
+              f'command, difference / sqrt 2); last run max / floor max: '
+              f'{last["max_over_floor_x"]:.2f} in x, {last["max_over_floor_y"]:.2f} in y')
     paper = PAPER_TABLE_1.get(design)
     if paper:
         print(f'paper, {design}: original {paper["original_mm"][0]} / {paper["original_mm"][1]}'
@@ -143,9 +165,14 @@ def run(arguments: argparse.Namespace) -> int:
     rows = [iteration_summary(index, bag, run) for index, (bag, run)
             in enumerate(zip(bags, errors))]
     add_reductions(rows)
-    print_table(arguments.design, rows)
-    summary_path = write_summary(arguments.out, {'design': arguments.design,
-                                                 'iterations': rows})
+    summary = {'design': arguments.design, 'iterations': rows}
+    floor = None
+    if arguments.repeat is not None:
+        floor = repeatability_floor(errors[-1], path_errors(load_last_run(arguments.repeat)))
+        add_floor(rows, floor)
+        summary['repeatability_floor'] = floor.summary()
+    print_table(arguments.design, rows, floor)
+    summary_path = write_summary(arguments.out, summary)
     pictures = plot(arguments.out, arguments.design or 'run', errors)
     print(f'wrote {summary_path}, ' + ', '.join(str(p) for p in pictures))
     return 0
