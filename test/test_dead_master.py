@@ -2,7 +2,7 @@
 A dead PC stops the motor: SIGKILL of the actuator loop's process, the drive's reaction.
 
 The simulated rig (``flexure-ctrl sim``) and one ``actuator_loop`` run as processes, as on
-the rig. The loop commissions the drive (consumer heartbeat on the loop's own heartbeat,
+the rig, the loop brought to active as ``flexure-ctrl up`` does. The loop commissions the drive (consumer heartbeat on the loop's own heartbeat,
 0x6007 = quick stop) and jogs it; the test kills the loop with SIGKILL mid-motion and
 watches the bus: the drive must quick-stop and send EMCY 0x8130 within its consumer
 heartbeat time of the loop's last heartbeat.
@@ -13,9 +13,11 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import can
+from flexure_ctrl.cli.lifecycle_client import LifecycleClient
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import DriveState
 from flexure_ctrl.core.design import find_config_file
@@ -106,7 +108,13 @@ def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_t
             return [(t, cia402.decode_pdo(d)[1] * 1e-6) for t, c, d in frames
                     if c == cia402.TPDO1_BASE + NODE_ID and len(d) == 6]
 
-        receive(time.monotonic() + 60.0,
+        # Configured and activated as flexure-ctrl up does it.
+        launcher = LifecycleClient()
+        try:
+            assert launcher.bring_up('actuator_1', threading.Event()) == ''
+        finally:
+            launcher.shutdown()
+        receive(time.monotonic() + 10.0,
                 lambda: statusword_state() is DriveState.OPERATION_ENABLED)
         assert statusword_state() is DriveState.OPERATION_ENABLED, 'the loop never enabled'
         # Jog: a setpoint 10 mm away, restated every 20 ms, until the rod moves.
