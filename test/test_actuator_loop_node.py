@@ -48,7 +48,9 @@ WATCHDOG_DECEL_M_S2 = 1.0
 
 
 def ticked_drive(channel: str) -> TickedDrive:
-    return TickedDrive(channel, NODE_ID, lag_s=0.02, seed=2)
+    # The loop thread shares this process (and its garbage collector) with pytest and the
+    # test's executor: 0.5 s of RPDO timeout, as a drive would be set for such a host.
+    return TickedDrive(channel, NODE_ID, lag_s=0.02, seed=2, rpdo_timeout_s=0.5)
 
 
 class Harness:
@@ -187,6 +189,9 @@ def make_node(context: rclpy.Context, channel: str, *extra: str) -> ActuatorLoop
                  '-p', 'can.interface:=virtual', '-p', f'can.channel:={channel}',
                  '-p', f'node_id:={NODE_ID}', '-p', 'design.stroke_limit_m:=0.045',
                  '-p', 'drive.eds_file:=drives/lead_screw_sim.eds',
+                 # The loop thread shares this process with the test's executor: as in
+                 # config/sim.yaml, a stall must not make the drive stop on its own.
+                 '-p', 'drive.consumer_heartbeat_s:=1.0',
                  '-p', 'watchdog_timeout_s:=1.0',
                  '-p', f'watchdog_decel_m_s2:={WATCHDOG_DECEL_M_S2}',
                  '-p', 'connect_timeout_s:=5.0', *extra]
@@ -557,7 +562,9 @@ def test_a_drive_that_stops_answering_is_reported_and_its_position_marked_stale(
     assert 'does not answer (NMT STOPPED)' in harness.diagnostics[-1].message
     values = {kv.key: kv.value for kv in harness.diagnostics[-1].values}
     assert values['position (m)'].endswith('(stale)')
-    # Nothing on the state topic shows the stale position as current.
+    # Nothing on the state topic shows the stale position as current (a state published
+    # before the drive went silent may still be on its way: let it arrive first).
+    harness.spin_for(0.1)
     count = len(harness.states)
     harness.spin_for(0.3)
     assert len(harness.states) == count

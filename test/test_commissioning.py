@@ -11,6 +11,7 @@ import uuid
 import can
 import canopen
 from conftest import TickedDrive
+from flexure_ctrl.cli.main import main
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import DriveState
 from flexure_ctrl.core.commissioning import commission, CommissioningError, DriveDescription
@@ -171,3 +172,31 @@ def test_a_silent_drive_is_a_timeout_naming_the_first_object(channel):
             commission(master_bus, description(), sdo_timeout_s=0.05)
     finally:
         master_bus.shutdown()
+
+
+def test_drive_info_shows_identity_state_mapping_and_errors_and_enables_nothing(
+        channel, rig, capsys):
+    rig.drive.inject_fault(0x7300)  # something in the error history
+    assert main(['drive', 'info', '--node-id', str(NODE_ID), '--interface', 'virtual',
+                 '--channel', channel]) == 0
+    printed = capsys.readouterr().out
+    for expected in ('device type (0x1000)        0x00020192 (CiA 402)',
+                     'vendor id (0x1018:01)       0x00000F1E',
+                     'device name (0x1008)        flexure_ctrl simulated lead-screw drive',
+                     'NMT state (heartbeat)       PRE-OPERATIONAL',
+                     'CiA 402 state (0x6041)      fault',
+                     'RPDO1 (0x1400/0x1600)       COB-ID 0x205: 0x6040:00 Controlword (16 bit)',
+                     'TPDO1 (0x1800/0x1A00)       COB-ID 0x185: 0x6041:00 Statusword (16 bit)',
+                     'error register (0x1001)     0x01',
+                     'error history (0x1003)      0x00007300'):
+        assert expected in printed, printed
+    assert rig.drive.nmt_state is cia402.NmtState.PRE_OPERATIONAL  # no NMT command sent
+
+
+def test_drive_info_on_a_silent_node_is_one_line_naming_it(channel, rig, capsys):
+    assert main(['drive', 'info', '--node-id', '9', '--interface', 'virtual',
+                 '--channel', channel]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith('flexure-ctrl drive: error: drive 9: no answer to an SDO read of '
+                            '0x1000:00 (Device type)')
+    assert '\n' not in error

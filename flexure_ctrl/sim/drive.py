@@ -294,6 +294,8 @@ class SimulatedDrive:
         objects.set_boot_value(QUICK_STOP_DECELERATION, 0,
                                int(round(quick_stop_decel_m_s2 * self.counts_per_m)))
         objects.set_boot_value(IDENTITY, 4, node_id)  # serial number
+        # 0x1017, kept here as well: the drive reads it every tick.
+        self._heartbeat_s = objects.read(cia402.HEARTBEAT_PRODUCER_TIME) / 1000.0
         self._lock = threading.RLock()
         self._closed = False
         self._now_s: Optional[float] = None
@@ -362,7 +364,7 @@ class SimulatedDrive:
     @property
     def heartbeat_period_s(self) -> float:
         """Heartbeat producer period (s), as set by 0x1017; 0 when disabled."""
-        return self.objects.read(cia402.HEARTBEAT_PRODUCER_TIME) / 1000.0
+        return self._heartbeat_s
 
     @property
     def quick_stop_decel_m_s2(self) -> float:
@@ -508,6 +510,7 @@ class SimulatedDrive:
         return 0
 
     def _write_heartbeat_time(self, value: int) -> int:
+        self._heartbeat_s = value / 1000.0
         self._next_heartbeat_s = None  # restart the period from the next tick
         return 0
 
@@ -620,6 +623,7 @@ class SimulatedDrive:
 
     def _reset_communication(self) -> None:
         self.objects.reset(0x1000, 0x1FFF)
+        self._heartbeat_s = self.objects.read(cia402.HEARTBEAT_PRODUCER_TIME) / 1000.0
         self._consumer_id = None
         self._consumer_heard_s = None
 

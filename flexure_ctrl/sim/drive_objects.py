@@ -83,6 +83,7 @@ class DriveObjects:
         self.sdo = SdoServer(0x600 + node_id, 0x580 + node_id, self)
         self.sdo.network = self
         self.rpdo = self.tpdo = PdoLayout(None, (), struct.Struct('<'))
+        self._tpdo_event_timer_s = 0.0
         self._refresh_layouts()
 
     # Hooks of the drive -----------------------------------------------------------------
@@ -228,12 +229,14 @@ class DriveObjects:
                          struct.Struct(codes))
 
     def _refresh_layouts(self) -> None:
+        # Read here, on a change, not on every tick of the drive.
         self.rpdo = self._layout(RPDO1_COMMUNICATION, RPDO1_MAPPING)
         self.tpdo = self._layout(TPDO1_COMMUNICATION, TPDO1_MAPPING)
+        self._tpdo_event_timer_s = self.read(TPDO1_COMMUNICATION, PDO_EVENT_TIMER) / 1000.0
 
     def tpdo_event_timer_s(self) -> float:
-        """Event timer (s) of TPDO1; 0 when off."""
-        return self.read(TPDO1_COMMUNICATION, PDO_EVENT_TIMER) / 1000.0
+        """Return the event timer (s) of TPDO1; 0 when off."""
+        return self._tpdo_event_timer_s
 
     def encode_tpdo(self) -> bytes:
         """TPDO1's payload from the mapped objects' current values."""
