@@ -2,10 +2,11 @@
 A dead PC stops the motor: SIGKILL of the actuator loop's process, the drive's reaction.
 
 The simulated rig (``flexure-ctrl sim``) and one ``actuator_loop`` run as processes, as on
-the rig, the loop brought to active as ``flexure-ctrl up`` does. The loop commissions the drive (consumer heartbeat on the loop's own heartbeat,
-0x6007 = quick stop) and jogs it; the test kills the loop with SIGKILL mid-motion and
-watches the bus: the drive must quick-stop and send EMCY 0x8130 within its consumer
-heartbeat time of the loop's last heartbeat.
+the rig, the loop configured and activated as ``flexure-ctrl up`` does. It commissions the
+drive (consumer heartbeat on the loop's own heartbeat, 0x6007 = quick stop) and jogs it;
+the test kills the loop with SIGKILL mid-motion and watches the bus: the drive must
+quick-stop and send EMCY 0x8130 within its consumer heartbeat time of the loop's last
+heartbeat.
 """
 
 import os
@@ -13,17 +14,18 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 
 import can
-from flexure_ctrl.cli.lifecycle_client import LifecycleClient
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import DriveState
 from flexure_ctrl.core.design import find_config_file
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 import yaml
 
@@ -87,6 +89,8 @@ def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_t
     context = Context()
     rclpy.init(context=context)
     node = rclpy.create_node('dead_master_probe', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
     publisher = node.create_publisher(JointState, '/flexure/actuator_setpoints', 10)
     try:
         frames = []  # (bus time s, cob id, data)
@@ -108,12 +112,14 @@ def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_t
             return [(t, cia402.decode_pdo(d)[1] * 1e-6) for t, c, d in frames
                     if c == cia402.TPDO1_BASE + NODE_ID and len(d) == 6]
 
-        # Configured and activated as flexure-ctrl up does it.
-        launcher = LifecycleClient()
-        try:
-            assert launcher.bring_up('actuator_1', threading.Event()) == ''
-        finally:
-            launcher.shutdown()
+        # Configured and activated as flexure-ctrl up does it (lifecycle_msgs).
+        change_state = node.create_client(ChangeState, '/actuator_1/change_state')
+        assert change_state.wait_for_service(timeout_sec=60.0), 'the loop never came up'
+        for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+            future = change_state.call_async(ChangeState.Request(
+                transition=Transition(id=transition)))
+            executor.spin_until_future_complete(future, timeout_sec=30.0)
+            assert future.done() and future.result().success, transition
         receive(time.monotonic() + 10.0,
                 lambda: statusword_state() is DriveState.OPERATION_ENABLED)
         assert statusword_state() is DriveState.OPERATION_ENABLED, 'the loop never enabled'
@@ -131,6 +137,7 @@ def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_t
                 lambda: statusword_state() is DriveState.QUICK_STOP_ACTIVE)
         receive(time.monotonic() + 0.3)
     finally:
+        executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
         sniffer.shutdown()
