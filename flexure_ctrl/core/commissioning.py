@@ -170,13 +170,14 @@ def load_eds(path: Union[str, PathLike], node_id: int) -> objectdictionary.Objec
     except (OSError, ValueError, KeyError) as error:
         raise CommissioningError(f'EDS {path}: cannot be read: {error}') from None
     for (index, subindex), name in REQUIRED_OBJECTS.items():
-        if _entry(dictionary, index, subindex) is None:
+        if od_entry(dictionary, index, subindex) is None:
             raise CommissioningError(f'EDS {path}: no object {_key(index, subindex)} '
                                      f'({name}), which commissioning needs')
     return dictionary
 
 
-def _entry(dictionary, index: int, subindex: int) -> Optional[objectdictionary.ODVariable]:
+def od_entry(dictionary, index: int, subindex: int) -> Optional[objectdictionary.ODVariable]:
+    """Return the EDS entry of ``index:subindex``, or None when the EDS lacks it."""
     if index not in dictionary:
         return None
     entry = dictionary[index]
@@ -202,7 +203,7 @@ class _Sdo:
         self._eds_file = eds_file
 
     def _variable(self, index: int, subindex: int) -> objectdictionary.ODVariable:
-        return _entry(self._node.object_dictionary, index, subindex)
+        return od_entry(self._node.object_dictionary, index, subindex)
 
     def _fail(self, verb: str, index: int, subindex: int, error: Exception) -> None:
         name = self._variable(index, subindex).name

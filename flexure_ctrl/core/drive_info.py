@@ -7,7 +7,7 @@ mapping, the error register and the pre-defined error field (0x1003). It reads o
 no NMT command, no controlword.
 """
 
-from typing import List, Optional, Tuple
+from typing import List, Tuple
 
 import can
 import canopen
@@ -15,19 +15,10 @@ from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.commissioning import abort_meaning, CommissioningTimeoutError
-from flexure_ctrl.core.commissioning import sdo_session
+from flexure_ctrl.core.commissioning import od_entry, sdo_session
 
 NMT_NAMES = {state.value: state.name.replace('_', '-') for state in cia402.NmtState}
 PDOS = (('RPDO1', 0x1400, 0x1600), ('TPDO1', 0x1800, 0x1A00))
-
-
-def _variable(dictionary, index: int, subindex: int) -> Optional[objectdictionary.ODVariable]:
-    if index not in dictionary:
-        return None
-    entry = dictionary[index]
-    if isinstance(entry, objectdictionary.ODVariable):
-        return entry if subindex == 0 else None
-    return entry[subindex] if subindex in entry else None
 
 
 def read_drive_info(bus: can.BusABC, node_id: int,
@@ -47,7 +38,7 @@ def read_drive_info(bus: can.BusABC, node_id: int,
 
 def _read(node, dictionary, heartbeat_wait_s: float) -> List[Tuple[str, str]]:
     def value(index: int, subindex: int = 0):
-        variable = _variable(dictionary, index, subindex)
+        variable = od_entry(dictionary, index, subindex)
         if variable is None:
             return None, 'not in the EDS'
         try:
@@ -97,7 +88,7 @@ def _read(node, dictionary, heartbeat_wait_s: float) -> List[Tuple[str, str]]:
             if entry_problem:
                 entries.append(entry_problem)
                 continue
-            mapped = _variable(dictionary, entry >> 16, (entry >> 8) & 0xFF)
+            mapped = od_entry(dictionary, entry >> 16, (entry >> 8) & 0xFF)
             entries.append(f'0x{entry >> 16:04X}:{(entry >> 8) & 0xFF:02X} '
                            f'{mapped.name if mapped is not None else "?"} '
                            f'({entry & 0xFF} bit)')
