@@ -1,9 +1,9 @@
 """
 One actuator loop's link to its drive: the bus and the drive client, brought up and down.
 
-:class:`DriveLink` opens the bus, commissions the drive from its EDS
-(:mod:`flexure_ctrl.core.commissioning`) and starts it (CiA 402 to Operation Enabled),
-retrying until a deadline at start-up; a bus that failed is replaced by a new one on
+:class:`DriveLink` opens the bus and commissions the drive from its EDS
+(:mod:`flexure_ctrl.core.commissioning`), retrying until a deadline (the caller then
+enables it with its client); a bus that failed is replaced by a new one on
 the next try, a drive that did not answer is tried again on the same bus. A drive that
 answers but is refused (wrong identity, an SDO abort, limits) ends the start at once.
 After a lost bus, :meth:`DriveLink.reopen` gives a new bus and a newly commissioned
@@ -67,14 +67,12 @@ class DriveLink:
     :param heartbeat_timeout_s: largest gap between drive heartbeats (s).
     :param connect_timeout_s: how long (s) to keep trying at start-up.
     :param retry_s: time (s) between two tries.
-    :param attempt_s: longest single try (s); the caller's thread waits that long.
     """
 
     def __init__(self, interface: str, channel: str, host: str, port: int,
                  description: DriveDescription,
                  dictionary: objectdictionary.ObjectDictionary, heartbeat_timeout_s: float,
-                 connect_timeout_s: float, retry_s: float = 0.2, attempt_s: float = 0.3
-                 ) -> None:
+                 connect_timeout_s: float, retry_s: float = 0.2) -> None:
         self._bus_arguments = (interface, channel, host, port)
         self.description = description
         self._dictionary = dictionary
@@ -82,21 +80,20 @@ class DriveLink:
         self.commissioned = None
         self.connect_timeout_s = connect_timeout_s
         self._retry_ns = int(retry_s * _NS_PER_S)
-        self._attempt_s = attempt_s
         self.bus: Optional[can.BusABC] = None
         self.client: Optional[DriveClient] = None
         self.problem = 'not connected yet'
         self._deadline_ns: Optional[int] = None
         self._next_try_ns = 0
 
-    def try_connect(self, now_ns: int, enable: bool = True) -> Optional[bool]:
+    def try_connect(self, now_ns: int) -> Optional[bool]:
         """
-        Try the bus and the drive once, if a try is due.
+        Try the bus and the drive's commissioning once, if a try is due.
 
-        :param enable: also bring the drive to Operation Enabled; else stop once it is
-            commissioned.
-        :returns: True once the drive is commissioned (and enabled, if asked); False after
-            a failed try (then :attr:`problem` says why); None when no try was due.
+        Enabling the drive is the caller's next step (:meth:`DriveClient.start`).
+
+        :returns: True once the drive is commissioned; False after a failed try (then
+            :attr:`problem` says why); None when no try was due.
         :raises DriveConnectError: still failing at ``connect_timeout_s``, or refused.
         """
         if now_ns < self._next_try_ns:
@@ -110,8 +107,6 @@ class DriveLink:
                 self.bus = open_bus(*self._bus_arguments)
             if self.client is None:
                 self.client = self._commissioned_client()
-            if enable:
-                self.client.start(timeout_s=max(0.05, min(self._attempt_s, remaining_s)))
         except CommissioningError as error:
             if not isinstance(error, CommissioningTimeoutError):
                 self.problem = str(error)

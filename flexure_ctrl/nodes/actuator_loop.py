@@ -189,7 +189,7 @@ class ActuatorLoop(LifecycleNode):
             if self._shutting_down.is_set() or not self.context.ok():
                 return TransitionCallbackReturn.FAILURE
             try:
-                connected = self.link.try_connect(time.monotonic_ns(), enable=False)
+                connected = self.link.try_connect(time.monotonic_ns())
             except DriveConnectError as error:
                 self._refuse(f'configure failed: {error}')
                 return TransitionCallbackReturn.FAILURE
