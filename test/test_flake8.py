@@ -15,8 +15,9 @@
 """ament_flake8 over the package's Python sources (ROS 2 ament_python lint test)."""
 
 import os
+import subprocess
+import sys
 
-from ament_flake8.main import main_with_errors
 import pytest
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -35,7 +36,16 @@ def lint_paths():
 @pytest.mark.linter
 def test_flake8(monkeypatch):
     monkeypatch.chdir(REPO_ROOT)
-    rc, errors = main_with_errors(argv=lint_paths())
-    assert rc == 0, \
-        'Found %d code style errors / warnings:\n' % len(errors) + \
-        '\n'.join(errors)
+    # In a process of its own: flake8 forks workers, and a fork of pytest's process after
+    # the node tests (DDS threads live in it) has hung.
+    script = ('import sys\n'
+              'from ament_flake8.main import main_with_errors\n'
+              'rc, errors = main_with_errors(argv=sys.argv[1:])\n'
+              'print("\\n".join(errors))\n'
+              'sys.exit(rc)\n')
+    result = subprocess.run([sys.executable, '-c', script, *lint_paths()],
+                            capture_output=True, text=True, timeout=240)
+    errors = [line for line in result.stdout.splitlines() if line.strip()]
+    assert result.returncode == 0, \
+        'Found %d code style errors / warnings:\n' % len(errors) + '\n'.join(errors) + \
+        result.stderr[-2000:]
