@@ -117,6 +117,18 @@ def test_a_lost_bus_trips_and_a_reset_that_fails_says_why():
     assert drive.mode is Mode.FAULTED
 
 
+def test_a_library_error_with_a_traceback_in_its_text_is_reported_in_one_line():
+    # python-can's socketcand client pastes a traceback into its errors; the problem (the
+    # log line and /diagnostics message) keeps the first line only.
+    drive, client = running_drive()
+    client.send_error = can.CanError(
+        'Failed to receive: [Errno 104] Connection reset by peer  Traceback (most recent '
+        'call last):\n  File "socketcand.py", line 270, in _recv_internal\nOSError: reset\n')
+    assert not drive.cycle(2 * MS, 0.002)
+    assert drive.problem == 'CanError: Failed to receive: [Errno 104] Connection reset by peer'
+    assert all('\n' not in text and 'Traceback' not in text for _, text in drive.events)
+
+
 def test_reset_is_refused_before_a_drive_is_attached():
     limits = LoopLimits(max_speed_m_s=0.02, stroke_limit_m=0.045)
     drive = ActuatorDrive(ActuatorController(ProportionalLoop(10.0, 1.0, limits), 0.1, 0.05,

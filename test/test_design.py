@@ -2,6 +2,7 @@
 
 import copy
 from dataclasses import replace
+import re
 
 from conftest import arc_design
 from flexure_ctrl.core.design import (available_designs, design_from_parameters,
@@ -87,11 +88,20 @@ def mutate(parameters, dotted, value):
     ('design.table.l0_m', [0.0, 0.01, 0.005, 0.02] + [0.03] * 15, 'strictly increasing'),
     ('design.table.theta_f_rad', [0.1] * 19, 'strictly increasing'),
     ('design.table.x_f_m', [0.03] * 18, 'equal lengths'),
-    ('design.table.y_f_m', [0.0] * 9 + [float('nan')] + [0.0] * 9, 'not finite'),
+    # YAML writes NaN as .nan, which rcl reads as a string (it reads nan as a number).
+    ('design.table.y_f_m', [0.0] * 9 + [float('nan')] + [0.0] * 9,
+     re.escape("entry 9: expected a float, got '.nan' (str)")),
     ('design.table.x_f_m', 'abc', 'list of numbers'),
     ('design.geometry.link1_length_m', -0.5, 'must be positive'),
     ('design.branch', 'sideways', "one of \\['above', 'below'\\]"),
     ('design.stroke_limit_m', 0.05, 'outside the table'),
+    # The types rclpy enforces for the nodes (an int is not a float), refused the same way.
+    ('design.geometry.link1_offset_m', 0, re.escape('expected a float (write 0.0), got 0 (int)')),
+    ('design.table.l0_m', [-0.045, -0.04, 0] + [0.045] * 16,
+     re.escape('entry 2: expected a float (write 0.0), got 0 (int)')),
+    ('design.stroke_limit_m', '0.045', re.escape("expected a float, got '0.045' (str)")),
+    ('design.recommended', 1, re.escape('expected true or false, got 1 (int)')),
+    ('design.name', 7, re.escape('expected a string, got 7 (int)')),
 ])
 def test_bad_file_gives_one_error_naming_file_and_key(tmp_path, good_parameters, dotted,
                                                       value, problem):
@@ -100,7 +110,15 @@ def test_bad_file_gives_one_error_naming_file_and_key(tmp_path, good_parameters,
         load_design(path)
     key = 'design.table' if problem == 'equal lengths' else dotted
     assert caught.value.key == key
-    assert str(path) in str(caught.value) and repr(key) in str(caught.value)
+    assert str(caught.value).startswith(f'{path}: {key}: ')
+    assert '\n' not in str(caught.value)
+
+
+def test_a_number_that_is_not_finite_is_refused(good_parameters):
+    parameters = mutate(good_parameters, 'design.table.y_f_m',
+                        [0.0] * 9 + [float('nan')] + [0.0] * 9)
+    with pytest.raises(DesignFileError, match='entry 9 is not finite'):
+        design_from_parameters(parameters)
 
 
 def test_not_a_parameter_file(tmp_path):

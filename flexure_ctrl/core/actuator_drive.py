@@ -20,6 +20,7 @@ from typing import Callable, List, Optional, Tuple
 import can
 from flexure_ctrl.core.cia402 import NmtState
 from flexure_ctrl.core.drive_client import DriveClient, DriveError
+from flexure_ctrl.core.errors import one_line
 from flexure_ctrl.core.ploop import ActuatorController
 
 _NS_PER_S = 1_000_000_000
@@ -124,7 +125,7 @@ class ActuatorDrive:
     def trip(self, error: Exception) -> None:
         """Latch a fault: one quick-stop frame, then no commands until reset."""
         self.bus_failed = isinstance(error, (can.CanError, OSError))
-        self.latch(Mode.FAULTED, f'{type(error).__name__}: {error}')
+        self.latch(Mode.FAULTED, f'{type(error).__name__}: {one_line(error)}')
 
     def latch(self, mode: Mode, problem: str) -> None:
         """Latch ``mode`` (a quick stop or a fault) for ``problem``; quick-stop the drive."""
@@ -134,7 +135,8 @@ class ActuatorDrive:
         try:
             self.client.quick_stop()
         except (can.CanError, OSError) as send_error:
-            self.events.append((logging.ERROR, f'could not send the quick stop: {send_error}'))
+            self.events.append((logging.ERROR,
+                                f'could not send the quick stop: {one_line(send_error)}'))
 
     def reset(self, timeout_s: float,
               reopen: Optional[Callable[[], DriveClient]] = None) -> Tuple[bool, str]:
@@ -154,7 +156,7 @@ class ActuatorDrive:
                 self.bus_failed = False
             self.client.start(timeout_s=timeout_s)
         except (DriveError, can.CanError, OSError) as error:
-            self.problem = f'reset failed: {type(error).__name__}: {error}'
+            self.problem = f'reset failed: {type(error).__name__}: {one_line(error)}'
             self.events.append((logging.ERROR, self.problem))
             return False, self.problem
         self.enter_running()

@@ -32,6 +32,7 @@ import canopen
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from flexure_ctrl.core.drive_client import DriveError
+from flexure_ctrl.core.errors import one_line
 
 CIA_402_PROFILE = 402
 DEVICE_TYPE = 0x1000
@@ -168,7 +169,7 @@ def load_eds(path: Union[str, PathLike], node_id: int) -> objectdictionary.Objec
     try:
         dictionary = canopen.import_od(str(path), node_id)
     except (OSError, ValueError, KeyError) as error:
-        raise CommissioningError(f'EDS {path}: cannot be read: {error}') from None
+        raise CommissioningError(f'EDS {path}: cannot be read: {one_line(error)}') from None
     for (index, subindex), name in REQUIRED_OBJECTS.items():
         if od_entry(dictionary, index, subindex) is None:
             raise CommissioningError(f'EDS {path}: no object {_key(index, subindex)} '
@@ -211,7 +212,7 @@ class _Sdo:
         if isinstance(error, SdoAbortedError):
             raise CommissioningError(f'{where}: SDO abort 0x{error.code:08X} '
                                      f'({abort_meaning(error.code)})') from None
-        raise CommissioningTimeoutError(f'{where}: no SDO answer ({error})') from None
+        raise CommissioningTimeoutError(f'{where}: no SDO answer ({one_line(error)})') from None
 
     def read(self, index: int, subindex: int = 0) -> int:
         variable = self._variable(index, subindex)

@@ -10,15 +10,25 @@ the solution branch. Every value is SI: metres and radians.
 Loading a bad file raises one :class:`~flexure_ctrl.core.errors.DesignFileError` that
 names the file and the dotted key (``design.table.theta_f_rad``), never a bare
 ``KeyError`` from deep inside.
+
+One validator serves the loader and the nodes: :data:`DESIGN_PARAMETERS` lists every
+design key with the type the nodes declare it with (nodes/common.py builds its
+descriptors from it, and rclpy enforces them), and :func:`design_from_parameters` checks
+those types first, as rclpy would, so a file the nodes refuse (an offset written ``0``,
+an integer in ``l0_m``) is refused by ``flexure-ctrl solve`` too, with the same words.
+The loader reads the file's scalars as rcl's parameter parser does (:func:`read_parameter_file`).
 """
 
 from dataclasses import dataclass
+import enum
 import math
 import os
 from pathlib import Path
-from typing import Any, Mapping, Optional, Union
+import re
+import sys
+from typing import Any, Dict, Mapping, Optional, Tuple, Union
 
-from flexure_ctrl.core.errors import DesignFileError
+from flexure_ctrl.core.errors import DesignFileError, one_line, yaml_problem
 import numpy as np
 import yaml
 
@@ -29,6 +39,50 @@ GEOMETRY_KEYS = ('link1_length_m', 'link1_offset_m', 'link2_length_m', 'link2_of
 MIN_TABLE_POINTS = 4
 
 PathLike = Union[str, os.PathLike]
+
+
+class ParameterKind(enum.Enum):
+    """The type of a design parameter, as a node declares it (a ROS parameter type)."""
+
+    STRING = 'string'
+    BOOL = 'bool'
+    DOUBLE = 'double'
+    DOUBLE_ARRAY = 'double_array'
+
+
+@dataclass(frozen=True)
+class DesignParameter:
+    """One design parameter: its dotted name, its type and what it holds (with units)."""
+
+    name: str
+    kind: ParameterKind
+    description: str
+
+
+# Every design key, in the order the nodes declare them. The only list: the nodes' ROS
+# parameter descriptors are built from it.
+DESIGN_PARAMETERS: Tuple[DesignParameter, ...] = (
+    (DesignParameter('design.name', ParameterKind.STRING, 'design name'),
+     DesignParameter('design.description', ParameterKind.STRING, 'what the design is'),
+     DesignParameter('design.provenance', ParameterKind.STRING, 'synthetic or measured'),
+     DesignParameter('design.provenance_note', ParameterKind.STRING,
+                     'how the table was made'),
+     DesignParameter('design.recommended', ParameterKind.BOOL, 'false for designs to avoid'),
+     DesignParameter('design.warning', ParameterKind.STRING,
+                     'why a design is not recommended'),
+     DesignParameter('design.branch', ParameterKind.STRING, 'above or below'),
+     DesignParameter('design.stroke_limit_m', ParameterKind.DOUBLE,
+                     'symmetric actuator stroke limit (m)'))
+    + tuple(DesignParameter(f'design.table.{key}', ParameterKind.DOUBLE_ARRAY,
+                            'characterisation table column (m or rad)')
+            for key in TABLE_KEYS)
+    + tuple(DesignParameter(f'design.table_joint_2.{key}', ParameterKind.DOUBLE_ARRAY,
+                            "joint 2's own table column (m or rad), if the joints differ; "
+                            'optional')
+            for key in TABLE_KEYS)
+    + tuple(DesignParameter(f'design.geometry.{key}', ParameterKind.DOUBLE,
+                            'link geometry (m)')
+            for key in GEOMETRY_KEYS))
 
 
 @dataclass(frozen=True)
@@ -90,6 +144,33 @@ class Design:
             else self.table
 
 
+def installed_prefix() -> Optional[Path]:
+    """
+    Return this interpreter's prefix (``sys.prefix``) if flexure_ctrl's data is there.
+
+    tools/setup.sh links the package's data files (the ament index marker, package.xml,
+    ``config/``) into ``<venv>/share`` as a colcon install would; None when they are not.
+    """
+    prefix = Path(sys.prefix)
+    marker = prefix / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'flexure_ctrl'
+    return prefix if marker.exists() else None
+
+
+def ensure_ament_prefix_path() -> None:
+    """
+    Set ``AMENT_PREFIX_PATH`` to :func:`installed_prefix` when it is unset or empty.
+
+    So the entry points work from the venv without ``source tools/env.sh``: the ament
+    index (and every process started from here, which inherits the variable) finds the
+    message packages and flexure_ctrl in the venv. A set variable is left alone.
+    """
+    if os.environ.get('AMENT_PREFIX_PATH'):
+        return
+    prefix = installed_prefix()
+    if prefix is not None:
+        os.environ['AMENT_PREFIX_PATH'] = str(prefix)
+
+
 def config_search_dirs() -> list:
     """
     Return the folders searched for configuration files, in order.
@@ -102,6 +183,12 @@ def config_search_dirs() -> list:
     if override:
         dirs.append(Path(override))
     dirs.append(Path(__file__).resolve().parents[2] / 'config')
+    if not os.environ.get('AMENT_PREFIX_PATH'):
+        # tools/env.sh not sourced: the ament index would raise; look in our own prefix.
+        prefix = installed_prefix()
+        if prefix is not None:
+            dirs.append(prefix / 'share' / 'flexure_ctrl' / 'config')
+        return dirs
     try:
         from ament_index_python.packages import get_package_share_directory
         from ament_index_python.packages import PackageNotFoundError
@@ -163,14 +250,112 @@ def load_design(name_or_path: PathLike) -> Design:
     :raises DesignFileError: the file is missing, not YAML, or any key is missing or bad.
     """
     path = find_design_file(name_or_path)
+    return design_from_parameters(_ros_parameters(read_parameter_file(path), path), path)
+
+
+class _RclLoader(yaml.SafeLoader):
+    """
+    A YAML loader that types plain scalars as rcl's parameter parser does.
+
+    A quoted scalar is a string. A plain one is a bool if it is one of rcl's words
+    (``y``, ``yes``, ``true``, ``on`` ... in lower, title or upper case), else an integer
+    if C's ``strtol`` (base 0) reads all of it (``12``, ``0x1f``, ``017``), else a double
+    if ``strtod`` does (``1.5``, ``1e-3``, ``.5``, ``inf``), else a string. So a file
+    means the same to :func:`load_design` as to a node (PyYAML alone reads ``1e-3`` as a
+    string and ``1_000.0`` as a number; rcl the other way round). Keys are strings.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        """Build a mapping whose keys are the keys' text (``y:`` is the name ``y``)."""
+        mapping = {}
+        for key_node, value_node in node.value:
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise yaml.constructor.ConstructorError(
+                    'while reading a mapping', node.start_mark,
+                    'found a key that is not a name', key_node.start_mark)
+            mapping[key_node.value] = self.construct_object(value_node, deep=deep)
+        return mapping
+
+
+_RclLoader.yaml_implicit_resolvers = {}
+_RCL_TRUE = ('y', 'yes', 'true', 'on')
+_RCL_FALSE = ('n', 'no', 'false', 'off')
+_RCL_BOOL_WORDS = {variant: value for words, value in ((_RCL_TRUE, True), (_RCL_FALSE, False))
+                   for word in words for variant in (word, word.title(), word.upper())}
+_RCL_INT = re.compile(r'^[-+]?(?:0[xX][0-9a-fA-F]+|0[0-7]*|[1-9][0-9]*)$')
+_RCL_DOUBLE = re.compile(
+    r'^[-+]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?'
+    r'|0[xX](?:[0-9a-fA-F]+\.?[0-9a-fA-F]*|\.[0-9a-fA-F]+)(?:[pP][-+]?[0-9]+)?'
+    r'|(?i:inf|infinity|nan))$')
+_RclLoader.add_implicit_resolver(
+    'tag:yaml.org,2002:bool',
+    re.compile('^(?:' + '|'.join(map(re.escape, _RCL_BOOL_WORDS)) + ')$'), None)
+_RclLoader.add_implicit_resolver('tag:yaml.org,2002:int', _RCL_INT, None)
+_RclLoader.add_implicit_resolver('tag:yaml.org,2002:float', _RCL_DOUBLE, None)
+
+
+def _rcl_int(text: str) -> int:
+    """``strtol(text, NULL, 0)`` of a text that :data:`_RCL_INT` matched."""
+    sign, digits = (-1, text[1:]) if text[0] == '-' else (1, text.lstrip('+'))
+    if digits[:2] in ('0x', '0X'):
+        return sign * int(digits[2:], 16)
+    return sign * int(digits, 8 if digits.startswith('0') and len(digits) > 1 else 10)
+
+
+def _rcl_double(text: str) -> float:
+    """``strtod(text, NULL)`` of a text that :data:`_RCL_DOUBLE` matched."""
+    unsigned = text.lstrip('+-')
+    if unsigned[:2] in ('0x', '0X'):
+        value = float.fromhex(unsigned)
+        return -value if text.startswith('-') else value
+    return float(text)
+
+
+_RclLoader.add_constructor(
+    'tag:yaml.org,2002:bool',
+    lambda loader, node: _RCL_BOOL_WORDS[loader.construct_scalar(node)])
+_RclLoader.add_constructor(
+    'tag:yaml.org,2002:int', lambda loader, node: _rcl_int(loader.construct_scalar(node)))
+_RclLoader.add_constructor(
+    'tag:yaml.org,2002:float', lambda loader, node: _rcl_double(loader.construct_scalar(node)))
+
+
+def read_parameter_file(path: PathLike) -> Any:
+    """
+    Read a ROS parameter file as rcl does (see :class:`_RclLoader`).
+
+    :raises DesignFileError: the file cannot be read or is not valid YAML (one line that
+        names the file and, for YAML, the line and column).
+    """
     try:
         with open(path, encoding='utf-8') as stream:
-            document = yaml.safe_load(stream)
+            return yaml.load(stream, Loader=_RclLoader)  # a SafeLoader, typed as rcl types
     except OSError as error:
-        raise DesignFileError(path, '<file>', f'cannot read: {error}') from error
+        raise DesignFileError(path, '<file>',
+                              f'cannot read: {error.strerror or one_line(error)}') from error
     except yaml.YAMLError as error:
-        raise DesignFileError(path, '<file>', f'not valid YAML: {error}') from error
-    return design_from_parameters(_ros_parameters(document, path), path)
+        raise DesignFileError(path, '<file>', yaml_problem(error)) from error
+
+
+def holds_design(path: PathLike) -> bool:
+    """
+    Return whether the parameter file at ``path`` sets any ``design.`` parameter.
+
+    A file that cannot be read or parsed holds none.
+    """
+    try:
+        document = read_parameter_file(path)
+    except DesignFileError:
+        return False
+    if not isinstance(document, Mapping):
+        return False
+    for section in document.values():
+        parameters = section.get('ros__parameters') if isinstance(section, Mapping) else None
+        if isinstance(parameters, Mapping) and any(
+                name == 'design' or name.startswith('design.')
+                for name in _flatten(parameters)):
+            return True
+    return False
 
 
 def _ros_parameters(document: Any, path: PathLike) -> Mapping:
@@ -181,7 +366,80 @@ def _ros_parameters(document: Any, path: PathLike) -> Mapping:
     node = document[node_key]
     if not isinstance(node, Mapping) or 'ros__parameters' not in node:
         raise DesignFileError(path, f'{node_key}.ros__parameters', 'missing')
-    return node['ros__parameters']
+    parameters = node['ros__parameters']
+    if not isinstance(parameters, Mapping):
+        raise DesignFileError(path, f'{node_key}.ros__parameters',
+                              f'expected a mapping of parameters, got {_shown(parameters)}')
+    return parameters
+
+
+def _flatten(parameters: Mapping, prefix: str = '') -> Dict[str, Any]:
+    """
+    Return the parameters of a nested mapping by their dotted names, as rcl names them.
+
+    An empty list is left out: rcl leaves such a parameter unset.
+    """
+    flat: Dict[str, Any] = {}
+    for key, value in parameters.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, f'{name}.'))
+        elif not (isinstance(value, (list, tuple)) and len(value) == 0):
+            flat[name] = value
+    return flat
+
+
+def _shown(value: Any) -> str:
+    """Show a value as an error message does: ``0 (int)``."""
+    return f'{value!r} ({type(value).__name__})'
+
+
+def _float_problem(value: Any) -> Optional[str]:
+    """Why ``value`` is not a double parameter's value (an int is not); None if it is."""
+    if isinstance(value, float):
+        return None
+    if isinstance(value, int) and not isinstance(value, bool):
+        return f'expected a float (write {float(value)!r}), got {_shown(value)}'
+    return f'expected a float, got {_shown(value)}'
+
+
+def type_problem(kind: ParameterKind, value: Any) -> Optional[str]:
+    """
+    Say why rclpy would refuse ``value`` for a parameter of ``kind``; None if it would not.
+
+    rclpy types a parameter by how the file writes it and never converts: a double must be
+    written as a float (``0.0``, not ``0``), and a double array must hold floats only.
+    """
+    if kind is ParameterKind.DOUBLE:
+        return _float_problem(value)
+    if kind is ParameterKind.DOUBLE_ARRAY:
+        if not isinstance(value, (list, tuple, np.ndarray)):
+            return f'expected a list of numbers written as floats, got {_shown(value)}'
+        for index, item in enumerate(value):
+            problem = _float_problem(item)
+            if problem is not None:
+                return f'entry {index}: {problem}'
+        return None
+    if kind is ParameterKind.BOOL:
+        return None if isinstance(value, bool) else \
+            f'expected true or false, got {_shown(value)}'
+    return None if isinstance(value, str) else f'expected a string, got {_shown(value)}'
+
+
+def check_design_types(parameters: Mapping, path: PathLike = '<memory>') -> None:
+    """
+    Refuse, as rclpy refuses it for a node, a design value of another type than declared.
+
+    :param parameters: the ``ros__parameters`` mapping (nested, or by dotted names).
+    :raises DesignFileError: naming the file, the first bad key (in declaration order) and
+        its value.
+    """
+    flat = _flatten(parameters)
+    for parameter in DESIGN_PARAMETERS:
+        if parameter.name in flat:
+            problem = type_problem(parameter.kind, flat[parameter.name])
+            if problem is not None:
+                raise DesignFileError(path, parameter.name, problem)
 
 
 def _read_table(reader: '_KeyReader', prefix: str, path: PathLike) -> CharacterisationData:
@@ -206,8 +464,14 @@ def _read_table(reader: '_KeyReader', prefix: str, path: PathLike) -> Characteri
 
 
 def design_from_parameters(parameters: Mapping, path: PathLike = '<memory>') -> Design:
-    """Build a validated :class:`Design` from the ``ros__parameters`` mapping."""
-    reader = _KeyReader(parameters, path)
+    """
+    Build a validated :class:`Design` from the ``ros__parameters`` mapping.
+
+    The types first, as rclpy checks them for a node (:func:`check_design_types`), then the
+    values: present, finite, positive where needed, tables strictly increasing.
+    """
+    check_design_types(parameters, path)
+    reader = _KeyReader(_flatten(parameters), path)
     table = _read_table(reader, 'design.table', path)
     table_joint_2 = None
     if reader.has('design.table_joint_2'):
@@ -244,26 +508,24 @@ class _KeyReader:
 
     _MISSING = object()
 
-    def __init__(self, parameters: Mapping, path: PathLike):
-        self._parameters = parameters
+    def __init__(self, flat: Mapping, path: PathLike):
+        """Read the parameters ``flat`` (by dotted name) of the file ``path``."""
+        self._flat = flat
         self._path = path
 
     def _get(self, dotted: str, default: Any = _MISSING) -> Any:
-        node: Any = self._parameters
-        for part in dotted.split('.'):
-            if not isinstance(node, Mapping) or part not in node:
-                if default is not self._MISSING:
-                    return default
-                raise DesignFileError(self._path, dotted, 'missing')
-            node = node[part]
-        return node
+        if dotted in self._flat:
+            return self._flat[dotted]
+        if default is not self._MISSING:
+            return default
+        raise DesignFileError(self._path, dotted, 'missing')
 
     def _fail(self, dotted: str, problem: str):
         raise DesignFileError(self._path, dotted, problem)
 
     def has(self, dotted: str) -> bool:
-        """Return whether the key is present (for optional sections)."""
-        return self._get(dotted, None) is not None
+        """Return whether any key of the section ``dotted`` is present (optional sections)."""
+        return any(name.startswith(f'{dotted}.') for name in self._flat)
 
     def string(self, dotted: str, default: Any = _MISSING) -> str:
         value = self._get(dotted, default)
@@ -299,7 +561,7 @@ class _KeyReader:
 
     def float_array(self, dotted: str) -> np.ndarray:
         value = self._get(dotted)
-        if not isinstance(value, list) or not value:
+        if not isinstance(value, (list, tuple, np.ndarray)) or len(value) == 0:
             self._fail(dotted, f'expected a non-empty list of numbers, got {value!r}')
         for index, item in enumerate(value):
             if isinstance(item, bool) or not isinstance(item, (int, float)):

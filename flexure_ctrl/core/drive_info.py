@@ -16,6 +16,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.commissioning import abort_meaning, CommissioningTimeoutError
 from flexure_ctrl.core.commissioning import od_entry, sdo_session
+from flexure_ctrl.core.errors import one_line
 
 NMT_NAMES = {state.value: state.name.replace('_', '-') for state in cia402.NmtState}
 PDOS = (('RPDO1', 0x1400, 0x1600), ('TPDO1', 0x1800, 0x1A00))
@@ -51,7 +52,8 @@ def _read(node, dictionary, heartbeat_wait_s: float) -> List[Tuple[str, str]]:
     except SdoCommunicationError as error:
         raise CommissioningTimeoutError(
             f'drive {node.id}: no answer to an SDO read of 0x1000:00 (Device type): '
-            f'{error}; check the node id, the bus and that the drive is powered') from None
+            f'{one_line(error)}; check the node id, the bus and that the drive is powered') \
+            from None
 
     def show(number, problem, width=8):
         return problem or f'0x{number:0{width}X}'

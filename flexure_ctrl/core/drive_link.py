@@ -11,7 +11,6 @@ drive. Time is passed in (integer ns of a monotonic clock). Not thread-safe: the
 orders its calls.
 """
 
-import logging
 import socket
 from typing import Optional
 
@@ -20,7 +19,7 @@ from canopen import objectdictionary
 from flexure_ctrl.core.commissioning import commission, CommissioningError, \
     CommissioningTimeoutError, DriveDescription
 from flexure_ctrl.core.drive_client import DriveClient, DriveError
-from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.errors import FlexureCtrlError, one_line, quiet_library_loggers
 
 _NS_PER_S = 1_000_000_000
 INTERFACES_WITH_HOST = ('socketcand',)
@@ -46,8 +45,9 @@ def open_bus(interface: str, channel: str, host: str = '127.0.0.1',
         # 10 s; probe first so a server that is not up yet costs one quick failure.
         with socket.create_connection((host, port), timeout=1.0):
             pass
-        # It also warns whenever a TCP read ends inside a frame, which is normal.
-        logging.getLogger('can.interfaces.socketcand').setLevel(logging.ERROR)
+        # It also warns whenever a TCP read ends inside a frame, which is normal, and
+        # pastes tracebacks into its error lines: quiet (every failure is raised too).
+        quiet_library_loggers()
         return can.Bus(interface=interface, channel=channel, host=host, port=port,
                        tcp_tune=True)
     return can.Bus(interface=interface, channel=channel)
@@ -109,10 +109,10 @@ class DriveLink:
                 self.client = self._commissioned_client()
         except CommissioningError as error:
             if not isinstance(error, CommissioningTimeoutError):
-                self.problem = str(error)
+                self.problem = one_line(error)
                 self._deadline_ns = None
                 raise DriveConnectError(self.problem) from None
-            text = str(error)
+            text = one_line(error)
             if remaining_s <= 0.0:
                 self.problem = f'not connected after {self.connect_timeout_s} s: {text}'
                 self._deadline_ns = None
@@ -120,7 +120,7 @@ class DriveLink:
             self.problem = f'not connected: {text}'
             return False
         except (can.CanError, OSError, DriveError, ValueError) as error:
-            text = f'{type(error).__name__}: {error}'
+            text = f'{type(error).__name__}: {one_line(error)}'
             if not isinstance(error, DriveError):
                 # The bus itself failed: open a fresh one next time.
                 self.client = None

@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Tuple, Union
 
-from flexure_ctrl.core.errors import TrajectoryError
+from flexure_ctrl.core.errors import TrajectoryError, yaml_problem
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 import yaml
@@ -181,7 +181,7 @@ def _read_yaml(path: Path):
     except OSError as error:
         raise TrajectoryError(f'{path}: cannot read: {error}') from error
     except yaml.YAMLError as error:
-        raise TrajectoryError(f'{path}: not valid YAML: {error}') from error
+        raise TrajectoryError(f'{path}: {yaml_problem(error)}') from error
     if not isinstance(document, dict) or not isinstance(document.get('waypoints'), list):
         raise TrajectoryError(f'{path}: expected a list under the key "waypoints"')
     columns = {c: [] for c in WAYPOINT_COLUMNS}

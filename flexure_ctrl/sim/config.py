@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Mapping, Optional, Union
 
 from flexure_ctrl.core.design import find_config_file
-from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.errors import FlexureCtrlError, yaml_problem
 import yaml
 
 DEFAULTS_FILE = 'simulator.yaml'
@@ -31,7 +31,7 @@ def _read_yaml(path: Path) -> Mapping:
     except OSError as error:
         raise SimConfigError(f'{path}: cannot read: {error}') from error
     except yaml.YAMLError as error:
-        raise SimConfigError(f'{path}: not valid YAML: {error}') from error
+        raise SimConfigError(f'{path}: {yaml_problem(error)}') from error
     if not isinstance(document, Mapping):
         raise SimConfigError(f'{path}: expected a mapping of simulator knobs')
     return document
