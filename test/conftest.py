@@ -1,5 +1,10 @@
 """
-Shared fixtures: an analytic flexure table, and a simulated drive ticking in real time.
+Shared fixtures: a flexure table, a simulated drive on a virtual bus, a ROS context.
+
+The analytic table (``design``); a simulated drive ticking in real time (``rig``) on a
+virtual CAN bus of the test's own (``channel``) with a master's bus on it (``bus``); an
+rclpy context of the test's own (``context``). Plain helpers (``wait_for``,
+``free_port``, ...) are in helpers.py.
 
 Any ROS process a test starts talks to loopback only, on a domain of its own.
 """
@@ -7,17 +12,26 @@ Any ROS process a test starts talks to loopback only, on a domain of its own.
 import os
 import threading
 import time
+from typing import Dict, Iterator, TYPE_CHECKING
+import uuid
 
 import can
 from flexure_ctrl.core.design import CharacterisationData, Design, LinkGeometry
 from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
+from helpers import ros_context
+from helpers import spin_in_thread  # noqa: F401 (test_end_to_end imports it from here)
 import numpy as np
 import pytest
 
+if TYPE_CHECKING:  # rclpy is imported by the ROS fixtures only, when a test uses them
+    import rclpy
+
 # Always a domain of this test run's own (not the shell's): two runs at once, or a
-# run beside a live system, must not hear each other.
+# run beside a live system, must not hear each other. FLEXURE_CTRL_TEST_DOMAIN_ID pins
+# it, for runs beside others on one machine that have agreed on their domains.
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
+os.environ['ROS_DOMAIN_ID'] = (os.environ.get('FLEXURE_CTRL_TEST_DOMAIN_ID')
+                               or str(1 + os.getpid() % 100))
 
 FLEXURE_LENGTH_M = 0.03
 STROKE_M = 0.045
@@ -77,17 +91,35 @@ class TickedDrive:
         self.bus.shutdown()
 
 
-def spin_in_thread(executor) -> threading.Thread:
-    """Spin ``executor`` in a daemon thread until its context shuts down."""
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.impl.implementation_singleton import rclpy_implementation
+@pytest.fixture
+def context() -> Iterator['rclpy.Context']:
+    """Yield an rclpy context of the test's own, on the test run's domain."""
+    with ros_context() as test_context:
+        yield test_context
 
-    def spin():
-        try:
-            executor.spin()
-        except (ExternalShutdownException, rclpy_implementation.RCLError):
-            pass  # the test shut the context down
 
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    return thread
+@pytest.fixture
+def channel(request: pytest.FixtureRequest) -> str:
+    """Return a virtual CAN bus of the test's own: a python-can ``virtual`` channel."""
+    return f'vc_{request.module.__name__}_{uuid.uuid4().hex}'
+
+
+@pytest.fixture
+def rig(channel: str, drive_options: Dict[str, object]) -> Iterator[TickedDrive]:
+    """
+    Yield the simulated drive on ``channel``, ticking in real time; shut it down after.
+
+    A test module that uses it defines the fixture ``drive_options``: the keyword
+    arguments of :class:`TickedDrive` (``node_id``, ``lag_s``, ``seed``, drive options).
+    """
+    ticked = TickedDrive(channel, **drive_options)
+    yield ticked
+    ticked.shutdown()
+
+
+@pytest.fixture
+def bus(channel: str, rig: TickedDrive) -> Iterator[can.BusABC]:
+    """Yield a master's bus on the rig's virtual CAN bus, opened after the drive."""
+    master_bus = can.Bus(interface='virtual', channel=channel)
+    yield master_bus
+    master_bus.shutdown()

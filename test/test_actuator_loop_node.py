@@ -12,8 +12,7 @@ import math
 import os
 import threading
 import time
-from typing import Callable, Iterator, List, Optional, Tuple
-import uuid
+from typing import Callable, Dict, Iterator, List, Optional, Tuple
 
 from builtin_interfaces.msg import Duration
 import can
@@ -29,6 +28,7 @@ from flexure_ctrl.nodes.actuator_support import apply_thread_scheduling
 from flexure_ctrl.nodes.common import actuator_state_topic, DIAGNOSTICS_TOPIC
 from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
 from flexure_ctrl.nodes.run_messages import pairs_of, word_message
+from helpers import wait_for
 import numpy as np
 import pytest
 import rclpy
@@ -45,12 +45,16 @@ NODE_ID = 9
 ACTUATOR = 'actuator_1'
 WATCHDOG_TIMEOUT_S = 0.1
 WATCHDOG_DECEL_M_S2 = 1.0
+# The simulated drive. The loop thread shares this process (and its garbage collector)
+# with pytest and the test's executor: 0.5 s of RPDO timeout, as a drive would be set for
+# such a host.
+DRIVE_OPTIONS = {'node_id': NODE_ID, 'lag_s': 0.02, 'seed': 2, 'rpdo_timeout_s': 0.5}
 
 
-def ticked_drive(channel: str) -> TickedDrive:
-    # The loop thread shares this process (and its garbage collector) with pytest and the
-    # test's executor: 0.5 s of RPDO timeout, as a drive would be set for such a host.
-    return TickedDrive(channel, NODE_ID, lag_s=0.02, seed=2, rpdo_timeout_s=0.5)
+@pytest.fixture
+def drive_options() -> Dict[str, object]:
+    """Return the options of the ``rig`` fixture's simulated drive (conftest.py)."""
+    return DRIVE_OPTIONS
 
 
 class Harness:
@@ -153,13 +157,10 @@ class Harness:
             message = self.sniffer.recv(0.0)
 
     def spin_until(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while True:
+        def drained_and_true() -> bool:
             self.drain_sniffer()
-            if condition():
-                return
-            assert time.monotonic() < deadline, f'timed out after {timeout_s} s: {what}'
-            self.executor.spin_once(timeout_sec=0.005)
+            return condition()
+        wait_for(drained_and_true, timeout_s, what, spin=self.executor, poll_s=0.005)
 
     def spin_for(self, duration_s: float) -> None:
         end = time.monotonic() + duration_s
@@ -196,26 +197,6 @@ def make_node(context: rclpy.Context, channel: str, *extra: str) -> ActuatorLoop
                  '-p', f'watchdog_decel_m_s2:={WATCHDOG_DECEL_M_S2}',
                  '-p', 'connect_timeout_s:=5.0', *extra]
     return ActuatorLoop(context=context, cli_args=arguments)
-
-
-@pytest.fixture
-def context() -> Iterator[rclpy.Context]:
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    yield context
-    rclpy.try_shutdown(context=context)
-
-
-@pytest.fixture
-def channel() -> str:
-    return f'vc_actuator_loop_{uuid.uuid4().hex}'
-
-
-@pytest.fixture
-def rig(channel) -> Iterator[TickedDrive]:
-    ticked = ticked_drive(channel)
-    yield ticked
-    ticked.shutdown()
 
 
 @pytest.fixture
@@ -450,7 +431,7 @@ def test_connects_to_a_drive_that_appears_later(harness, channel):
         harness.spin_until(lambda: last_level(harness) == DiagnosticStatus.ERROR and
                            'not connected' in node.problem, 3.0, 'ERROR while not connected')
         assert node.mode is Mode.CONNECTING
-        late = ticked_drive(channel)
+        late = TickedDrive(channel, **DRIVE_OPTIONS)
         harness.spin_until(lambda: results, 5.0, 'configured')
         assert results == [TransitionCallbackReturn.SUCCESS]
         assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS

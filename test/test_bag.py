@@ -14,6 +14,7 @@ from flexure_ctrl.core.bag import BagError, BagReader, BagWriter, DEFINITION_SEP
 from flexure_ctrl.core.bag import message_definition, qos_profile, recover
 from flexure_ctrl.core.bag import type_description_hash
 from flexure_ctrl.core.errors import FlexureCtrlError
+from helpers import wait_for
 import pytest
 import yaml
 
@@ -269,10 +270,7 @@ def test_sigkill_leaves_the_messages_flushed_before_it(tmp_path):
             progress.append((time.monotonic(), int(line)))
 
     threading.Thread(target=pump, daemon=True).start()
-    deadline = time.monotonic() + 20.0
-    while time.monotonic() < deadline and (not progress or progress[-1][1] < 600):
-        time.sleep(0.01)
-    assert progress and progress[-1][1] >= 600, 'the writer did not get going'
+    wait_for(lambda: progress and progress[-1][1] >= 600, 20.0, 'the writer to get going')
     process.send_signal(signal.SIGKILL)
     killed_at = time.monotonic()
     process.wait(10)

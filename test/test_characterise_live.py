@@ -10,11 +10,9 @@ import json
 import os
 from pathlib import Path
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 from flexure_ctrl.cli.characterise_command import start_simulated_rig, true_joint_table
@@ -23,29 +21,17 @@ from flexure_ctrl.core.characterisation import read_points_csv
 from flexure_ctrl.core.design import find_design_file, load_design
 from flexure_ctrl.sim.config import load_sim_config
 from flexure_ctrl.sim.plant import PlantParameters, SimulatedArm
+from helpers import free_port, spin_in_thread, wait_for
 import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 import yaml
 
 DESIGN = 'cfa'
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(('127.0.0.1', 0))
-        return probe.getsockname()[1]
-
-
-def wait_for(condition, timeout_s, what):
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, f'timed out waiting for {what}'
-        time.sleep(0.05)
 
 
 class _Quiet:
@@ -75,14 +61,7 @@ def rig():
     executor.add_node(node)
     states = []
     node.create_subscription(JointState, '/flexure/actuator_1/state', states.append, 100)
-
-    def spin():
-        try:
-            executor.spin()
-        except ExternalShutdownException:
-            pass
-
-    threading.Thread(target=spin, daemon=True).start()
+    spin_in_thread(executor)
     try:
         assert start_simulated_rig(group, find_design_file(DESIGN).resolve(), sim_config,
                                    free_port(), free_port(), Path(folder.name)), \

@@ -6,11 +6,10 @@ BaseNode402, not this project's client.
 """
 
 import time
-import uuid
+from typing import Dict
 
 import can
 import canopen
-from conftest import TickedDrive
 from flexure_ctrl.cli.main import main
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import DriveState
@@ -19,6 +18,7 @@ from flexure_ctrl.core.commissioning import load_eds
 from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_client import DriveClient
 from flexure_ctrl.sim.drive import SIMULATED_DRIVE_EDS
+from helpers import wait_for
 import pytest
 
 NODE_ID = 5
@@ -36,22 +36,9 @@ def description(**overrides) -> DriveDescription:
 
 
 @pytest.fixture
-def channel() -> str:
-    return f'test-commissioning-{uuid.uuid4().hex}'
-
-
-@pytest.fixture
-def rig(channel):
-    ticked = TickedDrive(channel, NODE_ID, lag_s=0.01, seed=3, rpdo_timeout_s=0.0)
-    yield ticked
-    ticked.shutdown()
-
-
-@pytest.fixture
-def bus(channel, rig):
-    master_bus = can.Bus(interface='virtual', channel=channel)
-    yield master_bus
-    master_bus.shutdown()
+def drive_options() -> Dict[str, object]:
+    """Return the options of the ``rig`` fixture's simulated drive (conftest.py)."""
+    return {'node_id': NODE_ID, 'lag_s': 0.01, 'seed': 3, 'rpdo_timeout_s': 0.0}
 
 
 def test_an_independent_canopen_master_reads_and_enables_the_simulated_drive(channel, rig):
@@ -76,10 +63,7 @@ def test_an_independent_canopen_master_reads_and_enables_the_simulated_drive(cha
         assert node.state == 'OPERATION ENABLED'
         assert rig.drive.state is DriveState.OPERATION_ENABLED
         node.sdo[0x60FF].raw = 5000  # 5 mm/s over SDO
-        deadline = time.monotonic() + 2.0
-        while rig.actuator.rod_position_m < 1e-3:
-            assert time.monotonic() < deadline, 'the drive did not move'
-            time.sleep(0.01)
+        wait_for(lambda: rig.actuator.rod_position_m >= 1e-3, 2.0, 'the drive to move')
         node.state = 'SWITCH ON DISABLED'
         assert rig.drive.state is DriveState.SWITCH_ON_DISABLED
     finally:
@@ -115,10 +99,8 @@ def test_a_commissioned_drive_runs_and_quick_stops_when_its_master_falls_silent(
             time.sleep(0.002)  # pacing of the loop, not a readiness check
         assert rig.actuator.velocity_m_s > 0.005
         silent_s = time.monotonic()  # the master dies: no heartbeat, no RPDO from here
-        deadline = silent_s + 2.0
-        while rig.drive.state is DriveState.OPERATION_ENABLED:
-            assert time.monotonic() < deadline, 'the drive did not stop'
-            time.sleep(0.001)
+        wait_for(lambda: rig.drive.state is not DriveState.OPERATION_ENABLED, 2.0,
+                 'the drive to stop', poll_s=0.001)
         reacted_s = time.monotonic() - silent_s
         message = bus.recv(0.5)
         while message is not None:

@@ -20,11 +20,11 @@ import can
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import DriveState
 from flexure_ctrl.core.design import find_config_file
+from helpers import free_port, wait_for
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 import pytest
 import rclpy
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 import yaml
@@ -34,22 +34,18 @@ MASTER_NODE_ID = 126  # 127 - node_id: the loop's default
 NODE_ID = 1
 
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(('127.0.0.1', 0))
-        return probe.getsockname()[1]
+def accepts(port: int) -> bool:
+    """Return whether a server on 127.0.0.1 accepts connections on ``port``."""
+    try:
+        with socket.create_connection(('127.0.0.1', port), timeout=1.0):
+            return True
+    except OSError:
+        return False  # not listening yet
 
 
 def connect_sniffer(port: int, timeout_s: float) -> can.BusABC:
     """Open a socketcand client on the simulated bus once its server accepts connections."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            with socket.create_connection(('127.0.0.1', port), timeout=1.0):
-                break
-        except OSError:
-            assert time.monotonic() < deadline, 'the simulated rig never opened its bus'
-            time.sleep(0.1)  # the server is not listening yet: poll the port again
+    wait_for(lambda: accepts(port), timeout_s, 'the simulated rig to open its bus', poll_s=0.1)
     return can.Bus(interface='socketcand', channel='can0', host='127.0.0.1', port=port)
 
 
@@ -68,7 +64,7 @@ def processes():
 
 
 def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_time(
-        processes, tmp_path):
+        processes, context, tmp_path):
     can_port = free_port()
     # A node's own section in a parameter file wins over -p: override in a file of its own.
     overrides = tmp_path / 'overrides.yaml'
@@ -86,8 +82,6 @@ def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_t
          '-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     processes.append(loop)
-    context = Context()
-    rclpy.init(context=context)
     node = rclpy.create_node('dead_master_probe', context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -139,7 +133,6 @@ def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_t
     finally:
         executor.shutdown()
         node.destroy_node()
-        rclpy.shutdown(context=context)
         sniffer.shutdown()
     last_heartbeat_s = max(t for t, c, _ in frames if c == cia402.HEARTBEAT_BASE + MASTER_NODE_ID)
     emergencies = [(t, cia402.decode_emcy(d).error_code) for t, c, d in frames

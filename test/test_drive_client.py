@@ -6,11 +6,9 @@ simulated rig does; every wait is a poll on a condition with a deadline.
 """
 
 import time
-from typing import Callable, Iterator, List
-import uuid
+from typing import Callable, Dict, Iterator, List
 
 import can
-from conftest import TickedDrive
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState
 from flexure_ctrl.core.commissioning import commission, DriveDescription
@@ -19,14 +17,17 @@ from flexure_ctrl.core.drive_client import DriveClient, DriveError, DriveFaultEr
 from flexure_ctrl.core.drive_client import DriveTimeoutError, HeartbeatLostError
 from flexure_ctrl.core.drive_client import SdoAbortError
 from flexure_ctrl.sim.drive import SIMULATED_DRIVE_EDS
+from helpers import wait_for
 import pytest
 
 NODE_ID = 7
 LOOP_PERIOD_S = 0.002
 
 
-def ticked_drive(channel: str, **drive_kwargs) -> TickedDrive:
-    return TickedDrive(channel, NODE_ID, lag_s=0.01, seed=1, **drive_kwargs)
+@pytest.fixture
+def drive_options() -> Dict[str, object]:
+    """Return the options of the ``rig`` fixture's simulated drive (conftest.py)."""
+    return {'node_id': NODE_ID, 'lag_s': 0.01, 'seed': 1}
 
 
 class Sniffer:
@@ -45,18 +46,6 @@ class Sniffer:
         return self.rpdos
 
 
-@pytest.fixture
-def channel() -> str:
-    return f'test-drive-client-{uuid.uuid4().hex}'
-
-
-@pytest.fixture
-def rig(channel) -> Iterator[TickedDrive]:
-    ticked = ticked_drive(channel)
-    yield ticked
-    ticked.shutdown()
-
-
 def commissioned_bus(channel: str) -> can.BusABC:
     """Open a master's bus on ``channel`` and commission the drive over it."""
     bus = can.Bus(interface='virtual', channel=channel)
@@ -72,11 +61,9 @@ def client(channel, rig) -> Iterator[DriveClient]:
         yield drive_client
 
 
-def wait_until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, f'timed out waiting for {what}'
-        time.sleep(0.001)
+def wait_until(condition: Callable[[], object], timeout_s: float, what: str) -> None:
+    """Wait for ``condition`` at the drive's pace: :func:`helpers.wait_for`, every 1 ms."""
+    wait_for(condition, timeout_s, what, poll_s=0.001)
 
 
 def run_loop(client: DriveClient, velocity_m_s: float, duration_s: float) -> None:

@@ -11,7 +11,6 @@ import os
 from pathlib import Path
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -28,6 +27,7 @@ from flexure_ctrl.core.design import find_config_file, load_design
 from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.nodes.run_messages import pairs_of
 from geometry_msgs.msg import PointStamped
+from helpers import free_port
 import numpy as np
 import pytest
 import rclpy
@@ -47,12 +47,6 @@ SIM_PARAMETERS = yaml.safe_load(
 WATCHDOG_TIMEOUT_S = SIM_PARAMETERS['watchdog_timeout_s']
 WATCHDOG_DECEL_M_S2 = 1.0  # actuator_loop default
 MAX_SPEED_M_S = 0.02
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(('127.0.0.1', 0))
-        return probe.getsockname()[1]
 
 
 def stamp_s(message) -> float:

@@ -14,12 +14,12 @@ import sys
 import threading
 import time
 
-from conftest import spin_in_thread
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.bag import BagReader
 from flexure_ctrl.nodes.player import Player, PlayerConfigError
 from flexure_ctrl.nodes.recorder import Recorder
 from geometry_msgs.msg import PointStamped, PoseStamped
+from helpers import spin_in_thread, wait_for
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from nav_msgs.msg import Path
@@ -44,15 +44,6 @@ RUN_TOPICS = [POINTS, JOINTS, DIAGNOSTICS, LATCHED]
 RATE_HZ = 500.0
 LATCHED_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          reliability=ReliabilityPolicy.RELIABLE)
-
-
-def wait_for(condition, timeout_s, what):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.01)
-    assert condition(), f'timed out waiting for {what}'
 
 
 class Ros:

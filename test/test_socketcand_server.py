@@ -7,6 +7,7 @@ import uuid
 import can
 from flexure_ctrl.sim.socketcand_server import format_frame, NonLoopbackHostError, parse_send
 from flexure_ctrl.sim.socketcand_server import SocketcandProtocolError, SocketcandServer
+from helpers import wait_for
 import pytest
 
 TIMEOUT_S = 5.0
@@ -44,15 +45,6 @@ def receive(bus, count, timeout_s=TIMEOUT_S):
         if message is not None:
             frames.append(message)
     return frames
-
-
-def wait_for(condition, timeout_s=TIMEOUT_S):
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def frame_set(first_id):
@@ -159,7 +151,7 @@ def test_error_frames_reach_clients(server, connect):
 
 def test_garbage_and_broken_clients_are_dropped_without_harm(server, connect):
     client_a, client_b = connect(), connect()
-    wait_for(lambda: server.client_count == 2)
+    wait_for(lambda: server.client_count == 2, TIMEOUT_S, 'the two clients')
     garbage = [RawClient(server.port) for _ in range(5)]
     garbage[0].sock.sendall(b'< send 12 >')  # no length
     garbage[1].sock.sendall(b'< send 123 9 0 0 0 0 0 0 0 0 0 >')  # DLC above 8
@@ -174,7 +166,8 @@ def test_garbage_and_broken_clients_are_dropped_without_harm(server, connect):
     for raw in garbage + [unfinished]:
         assert raw.closed_by_server()
         raw.close()
-    assert wait_for(lambda: server.client_count == 2)
+    assert wait_for(lambda: server.client_count == 2, TIMEOUT_S,
+                    'the broken clients to be dropped')
     client_a.send(can.Message(arbitration_id=0x123, is_extended_id=False, data=b'\x01'))
     assert summary(receive(client_b, 1)) == [(0x123, False, 1, b'\x01')]
 
@@ -257,4 +250,5 @@ def test_client_that_never_finishes_the_handshake_is_dropped():
         assert silent.reply() == b'< hi >'
         assert silent.closed_by_server()
         silent.close()
-        assert wait_for(lambda: server.client_count == 0)
+        assert wait_for(lambda: server.client_count == 0, TIMEOUT_S,
+                        'the silent client to be dropped')
