@@ -9,12 +9,15 @@ import socket
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from flexure_ctrl.core.tracker import declared_targets
 from flexure_ctrl.core.tracker import RigTransform, TrackerLineFormat
 from flexure_ctrl.nodes.common import DIAGNOSTICS_TOPIC, tracker_topic
 from flexure_ctrl.nodes.tracker_bridge import STATUS_NAME, TrackerBridge
+from flexure_ctrl.nodes.tracker_bridge import TrackerBridgeConfigError
 from flexure_ctrl.sim.tracker_server import (TrackerServer, TrackerServerHostError,
                                              TrackerServerStateError)
 from geometry_msgs.msg import PointStamped
+from helpers import wait_for
 import numpy as np
 import pytest
 import rclpy
@@ -25,20 +28,6 @@ from rclpy.qos import QoSProfile
 
 END_TRUTH_M = (1.015, 0.2, 0.0)
 TIMEOUT_S = 5.0
-
-
-def wait_for(condition, timeout_s=TIMEOUT_S, spin=None, what='condition'):
-    """Poll ``condition`` (spinning the executor if given) until true or time out."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if condition():
-            return
-        if time.monotonic() > deadline:
-            raise AssertionError(f'timed out after {timeout_s} s waiting for {what}')
-        if spin is not None:
-            spin.spin_once(timeout_sec=0.02)
-        else:
-            time.sleep(0.01)
 
 
 class BridgeHarness:
@@ -66,20 +55,12 @@ class BridgeHarness:
         self.statuses += [status for status in message.status if status.name == STATUS_NAME]
 
     def wait_for(self, condition, timeout_s=TIMEOUT_S, what='condition'):
-        wait_for(condition, timeout_s, self.executor, what)
+        wait_for(condition, timeout_s, what, spin=self.executor)
 
     def close(self):
         self.bridge.destroy_node()
         self.listener.destroy_node()
         self.executor.shutdown()
-
-
-@pytest.fixture
-def context():
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    yield context
-    rclpy.try_shutdown(context=context)
 
 
 @pytest.fixture
@@ -140,7 +121,9 @@ def test_points_arrive_in_the_rig_frame_with_a_custom_format(context, harnesses,
     assert np.all(np.diff(stamps) > 0)  # the tracker's own, per-sample stamps
     assert start_ns <= stamps[0] and stamps[-1] <= time.time_ns()
     statistics = harness.bridge.statistics()
-    assert statistics['targets'] == ['end'] and statistics['ignored'] > 0  # 'base'
+    # 'base' is not listed: published all the same, and said to be undeclared.
+    assert statistics['targets'] == ['base', 'end'] and statistics['ignored'] == 0
+    assert statistics['undeclared_targets'] == ['base']
     assert statistics['malformed'] == 0
 
     harness.bridge.destroy_node()  # clean shutdown: the reader stops, the socket closes
@@ -211,6 +194,88 @@ def test_malformed_lines_are_counted_and_skipped(context, harnesses):
     assert statistics['malformed'] == 5
     assert statistics['invalid_status'] == 1
     assert statistics['published'] == 3
+
+
+class KeptWarnings:
+    """A node's logger that also keeps the warnings it is given."""
+
+    def __init__(self, logger) -> None:
+        self.logger = logger
+        self.warnings = []
+
+    def warning(self, text: str, **kwargs) -> bool:
+        self.warnings.append(text)
+        return self.logger.warning(text, **kwargs)
+
+    def __getattr__(self, name: str):
+        return getattr(self.logger, name)
+
+
+def matched(harness: BridgeHarness, target: str) -> bool:
+    """Whether the graph shows the target's publisher and it and the listener matched."""
+    topic = tracker_topic(target)
+    publishers = [p for p in harness.bridge.publishers if p.topic_name == topic]
+    subscriptions = [s for s in harness.listener.subscriptions if s.topic_name == topic]
+    return (harness.listener.count_publishers(topic) == 1
+            and len(publishers) == 1 and publishers[0].get_subscription_count() == 1
+            and len(subscriptions) == 1 and subscriptions[0].get_publisher_count() == 1)
+
+
+def test_listed_targets_have_their_topics_before_the_first_point(
+        context, harnesses, monkeypatch):
+    listener = socket.create_server(('127.0.0.1', 0))
+    listener.settimeout(TIMEOUT_S)
+    harness = BridgeHarness(context, port=listener.getsockname()[1], targets=['tip1_a'])
+    harnesses.append(harness)
+    bridge = harness.bridge
+    log = KeptWarnings(bridge.get_logger())
+    monkeypatch.setattr(bridge, 'get_logger', lambda: log)
+    tip, end = harness.subscribe('tip1_a'), harness.subscribe('end')
+    connection, _ = listener.accept()
+    try:
+        # Before the tracker sends anything, the listed target's topic and 'end' (not
+        # listed, always declared) have their publisher, and both sides have matched.
+        harness.wait_for(lambda: matched(harness, 'tip1_a') and matched(harness, 'end'),
+                         what='the publishers of tip1_a and end, before any point')
+        assert bridge.lines == 0
+        connection.sendall(b'1000,tip1_a,1.0,2.0,3.0,OK\n1000,end,4.0,5.0,6.0,OK\n')
+        harness.wait_for(lambda: tip and end, what='the first points of tip1_a and end')
+        # A target that is not listed: published from its first point on, warned once.
+        connection.sendall(b'1001,base,7.0,8.0,9.0,OK\n')
+        harness.wait_for(lambda: bridge.published == 3, what='the first point of base')
+        base = harness.subscribe('base')
+        harness.wait_for(lambda: matched(harness, 'base'), what='a subscription to base')
+        connection.sendall(b'1002,base,7.0,8.0,9.0,OK\n1003,base,7.0,8.0,9.0,OK\n')
+        harness.wait_for(lambda: len(base) == 2, what='the later points of base')
+    finally:
+        connection.close()
+        listener.close()
+    # The very first point of each declared target arrived.
+    assert point_of(tip[0]) == pytest.approx((1e-3, 2e-3, 3e-3))
+    assert point_of(end[0]) == pytest.approx((4e-3, 5e-3, 6e-3))
+    assert bridge.declared_targets == ('end', 'tip1_a')
+    statistics = bridge.statistics()
+    assert statistics['targets'] == ['base', 'end', 'tip1_a']
+    assert statistics['undeclared_targets'] == ['base']
+    assert statistics['published'] == 5 and statistics['ignored'] == 0
+    [warning] = [text for text in log.warnings if 'base' in text]
+    assert "add 'base' to targets" in warning
+
+
+def test_declared_targets_hold_end_once_and_keep_their_order():
+    assert declared_targets([]) == ('end',)
+    assert declared_targets(['tip1_b', 'end', 'tip1_a', 'tip1_b']) == (
+        'end', 'tip1_b', 'tip1_a')
+
+
+@pytest.mark.parametrize('targets', [['tip 1'], ['end', '1tip'], ['tip1_a', ''],
+                                     ['/flexure/x'], ['a' * 65]])
+def test_a_bad_target_name_refuses_the_start_in_one_line_naming_it(context, targets):
+    with pytest.raises(TrackerBridgeConfigError) as raised:
+        TrackerBridge(context=context,
+                      parameter_overrides=[Parameter('targets', value=targets)])
+    message = str(raised.value)
+    assert message.startswith(f'parameter targets {targets}: ') and '\n' not in message
 
 
 def test_bridge_survives_the_tracker_going_away_and_reconnects(context, harnesses, servers):

@@ -45,6 +45,8 @@ import numpy as np
 REQUIRED_FIELDS = ('timestamp', 'target', 'x', 'y', 'z', 'status')
 DEFAULT_FIELDS = REQUIRED_FIELDS
 BEAM_BREAK_STATUS = 'BEAM_BREAK'
+# The end-point target on link 2: every rig has it.
+END_TARGET = 'end'
 MAX_TARGET_NAME_LENGTH = 64
 _COORDINATE_FIELDS = ('x', 'y', 'z')
 _TARGET_NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
@@ -232,6 +234,23 @@ def check_target_name(target: str) -> str:
             f'target name {target[:32]!r} is not letters, digits and underscores '
             f'starting with a letter or underscore')
     return target
+
+
+def declared_targets(names: Sequence[str]) -> Tuple[str, ...]:
+    """
+    Return the targets a bridge declares from its start: :data:`END_TARGET` and ``names``.
+
+    ``end`` comes first (added if missing); the names keep their order, repeats dropped.
+
+    :raises TrackerParseError: for the first name that is not a valid target name (see
+        :func:`check_target_name`); its ``reason`` says why.
+    """
+    declared = [END_TARGET]
+    for name in names:
+        check_target_name(name)
+        if name not in declared:
+            declared.append(name)
+    return tuple(declared)
 
 
 def parse_line(line: Union[str, bytes], fmt: TrackerLineFormat = DEFAULT_FORMAT

@@ -5,8 +5,14 @@ A reader thread owns the TCP connection to the tracker: it connects, cuts the by
 stream into lines, parses them (:mod:`flexure_ctrl.core.tracker`), maps the valid points
 of each TCP chunk from the tracker frame into the rig frame in one vectorised step
 (``p_rig = R(rpy) p_tracker + t``) and publishes them on ``/flexure/tracker/<target>``
-(``geometry_msgs/PointStamped``, frame ``rig``, m); a target's publisher is created when
-the target is first seen (at start for the targets listed in ``targets``).
+(``geometry_msgs/PointStamped``, frame ``rig``, m).
+
+Targets: the publishers of the targets in ``targets`` (``end`` always among them) are
+created at start, so a subscriber connects before the tracker's first point and none is
+lost (a topic created on first sight lost about the first 0.38 s to discovery). A target
+the tracker sends that is not listed is still published, from its first point on, with
+one warning naming it: list it in ``targets``. A name that cannot be a topic refuses
+the start, in one line naming the parameter and its value.
 
 Why publish from the reader thread rather than hand the points to the executor: rclpy
 publishers may be used from any thread, and a hand-off (a guard condition per chunk)
@@ -38,6 +44,8 @@ import time
 from typing import Dict, List, Optional, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.tracker import declared_targets, END_TARGET
 from flexure_ctrl.core.tracker import (DEFAULT_FIELDS, LineAssembler, parse_line,
                                        RigTransform, TrackerLineFormat, TrackerParseError)
 from flexure_ctrl.nodes.common import (DIAGNOSTICS_TOPIC, float_descriptor, int_descriptor,
@@ -46,13 +54,12 @@ from geometry_msgs.msg import PointStamped
 import numpy as np
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 STATUS_NAME = 'flexure_ctrl/tracker_bridge'
 STAMP_SOURCES = ('receive', 'tracker')
-# Publishers are created per target name seen; a stream of bogus names must not create
-# publishers without bound.
+# Publishers are created per target name listed or seen; a stream of bogus names must
+# not create publishers without bound.
 MAX_TARGETS = 32
 CONNECT_TIMEOUT_S = 2.0
 # recv() wakes at least this often to notice a stop request.
@@ -64,6 +71,10 @@ CONNECT_FAILURE_LOG_PERIOD_S = 30.0
 _MAX_STAMP_NS = (2**31 - 1) * 1_000_000_000
 # A dead peer (cable pulled, tracker off) is noticed after about idle + interval * count.
 _KEEPALIVE = (('TCP_KEEPIDLE', 2), ('TCP_KEEPINTVL', 1), ('TCP_KEEPCNT', 3))
+
+
+class TrackerBridgeConfigError(FlexureCtrlError, ValueError):
+    """A parameter of the tracker bridge is invalid; the message names it and its value."""
 
 
 def point_qos() -> QoSProfile:
@@ -97,8 +108,10 @@ class TrackerBridge(Node):
             read_only=True))
         declare('valid_statuses', ['OK'], typed_descriptor(
             strings, 'status words of a valid measurement (case-sensitive)', read_only=True))
-        declare('targets', Parameter.Type.STRING_ARRAY, typed_descriptor(
-            strings, 'targets to publish; unset or empty: every target seen', read_only=True))
+        declare('targets', [END_TARGET], typed_descriptor(
+            strings, "targets whose topics exist from the start ('end' is always one): "
+            'letters, digits and underscores; a target not listed is published from when '
+            'it is first seen, and warned about', read_only=True))
         declare('stamp_source', 'receive', typed_descriptor(
             string, "'receive': node clock at receipt; 'tracker': the line's timestamp",
             read_only=True))
@@ -125,8 +138,7 @@ class TrackerBridge(Node):
             fields=tuple(value('fields')), delimiter=value('delimiter'),
             length_unit_m=value('length_unit_m'), timestamp_unit_s=value('timestamp_unit_s'),
             valid_statuses=tuple(value('valid_statuses')))
-        unset = Parameter('targets', Parameter.Type.STRING_ARRAY, [])
-        self.target_filter = frozenset(self.get_parameter_or('targets', unset).value)
+        self.declared_targets = self._declared_targets(value('targets'))
         self.stamp_source = value('stamp_source')
         if self.stamp_source not in STAMP_SOURCES:
             raise ValueError(f'stamp_source must be one of {STAMP_SOURCES}, '
@@ -148,6 +160,7 @@ class TrackerBridge(Node):
         self.connect_failures = 0
         self.disconnects = 0
         self.last_malformed_reason = ''
+        self.undeclared_targets: List[str] = []  # seen, published, not in targets
         self._last_valid_monotonic_ns: Optional[int] = None
         self._connected = False
 
@@ -155,8 +168,8 @@ class TrackerBridge(Node):
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                                            10)
         self.create_timer(1.0, self.publish_diagnostics)
-        for target in sorted(self.target_filter):
-            self._add_output(target)  # known targets: their topics exist from the start
+        for target in self.declared_targets:
+            self._add_output(target)  # their topics exist before the first point
 
         self._stop = threading.Event()
         self._socket_lock = threading.Lock()
@@ -165,13 +178,26 @@ class TrackerBridge(Node):
         self.get_logger().info(
             f'reading the tracker at {self.host}:{self.port} ({",".join(self.format.fields)}'
             f', delimiter {self.format.delimiter!r}); {self.transform}; stamps: '
-            f'{self.stamp_source}')
+            f'{self.stamp_source}; targets: {",".join(self.declared_targets)}')
         self._reader = threading.Thread(target=self._run_reader, daemon=True,
                                         name='tracker-reader')
         self._reader.start()
 
     def _value(self, name: str):
         return self.get_parameter(name).value
+
+    @staticmethod
+    def _declared_targets(names: List[str]) -> Tuple[str, ...]:
+        """Return the checked ``targets`` with ``end``; refuse them in one line if bad."""
+        try:
+            targets = declared_targets(names)
+        except TrackerParseError as error:
+            raise TrackerBridgeConfigError(
+                f'parameter targets {list(names)}: {error.reason}') from None
+        if len(targets) > MAX_TARGETS:
+            raise TrackerBridgeConfigError(
+                f'parameter targets {list(names)}: more than {MAX_TARGETS} targets')
+        return targets
 
     # ----- reader thread: socket, parsing, publishing --------------------------------------
 
@@ -282,9 +308,6 @@ class TrackerBridge(Node):
             if not sample.valid:
                 self.invalid_status += 1
                 continue
-            if self.target_filter and sample.target not in self.target_filter:
-                self.ignored += 1
-                continue
             if receive_ns is not None:
                 stamp_ns = receive_ns
             elif sample.stamp_ns <= _MAX_STAMP_NS:
@@ -306,7 +329,7 @@ class TrackerBridge(Node):
         outputs = self._outputs
         try:
             for target, stamp_ns, (x, y, z) in zip(targets, stamps_ns, points_rig):
-                output = outputs[target] if target in outputs else self._add_output(target)
+                output = outputs[target] if target in outputs else self._add_undeclared(target)
                 if output is None:
                     self.ignored += 1  # one target too many
                     continue
@@ -346,6 +369,21 @@ class TrackerBridge(Node):
         self._outputs[target] = (publisher, message)
         return publisher, message
 
+    def _add_undeclared(self, target: str) -> Optional[Tuple[object, PointStamped]]:
+        """Publish a target that ``targets`` does not list, from now on; warn once."""
+        # Published rather than dropped: dropping would lose every point of a target the
+        # rig user forgot to list (a characterisation target, say), publishing loses only
+        # those that come before its subscribers have discovered the new topic.
+        output = self._add_output(target)
+        if output is not None:
+            self.undeclared_targets.append(target)
+            self.get_logger().warning(
+                f'tracker target {target!r} is not in the parameter targets '
+                f'{list(self.declared_targets)}: publishing it on {tracker_topic(target)} '
+                f'from its first point on (points before its subscribers connect are '
+                f'lost); add {target!r} to targets')
+        return output
+
     # ----- executor thread: diagnostics --------------------------------------------------
 
     def statistics(self) -> Dict[str, object]:
@@ -367,6 +405,7 @@ class TrackerBridge(Node):
             'last_sample_age_s': age_s,
             'targets': sorted(target for target, output in list(self._outputs.items())
                               if output is not None),
+            'undeclared_targets': sorted(self.undeclared_targets),
             'last_malformed_reason': self.last_malformed_reason,
         }
 
