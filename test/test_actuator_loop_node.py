@@ -21,12 +21,13 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState
 from flexure_ctrl.core.run import Following, LoopStatus, RunMessage, RunState
+from flexure_ctrl.interface import (actuator_state_topic, actuator_status_topic,
+                                    DIAGNOSTICS_TOPIC, RUN_STATUS_NAME, RUN_TOPIC,
+                                    SETPOINTS_TOPIC, TRAJECTORY_TOPIC)
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.actuator_loop import ActuatorLoop, ActuatorLoopConfigError
 from flexure_ctrl.nodes.actuator_loop import Mode
 from flexure_ctrl.nodes.actuator_support import apply_thread_scheduling
-from flexure_ctrl.nodes.common import actuator_state_topic, DIAGNOSTICS_TOPIC
-from flexure_ctrl.nodes.common import SETPOINTS_TOPIC
 from flexure_ctrl.nodes.run_messages import pairs_of, word_message
 from helpers import wait_for
 import numpy as np
@@ -83,12 +84,12 @@ class Harness:
         self.helper.create_timer(0.01, self._publish_setpoint)  # the 100 Hz demand rate
         self.statuses: List[LoopStatus] = []
         self.helper.create_subscription(
-            DiagnosticStatus, common.actuator_status_topic(ACTUATOR),
+            DiagnosticStatus, actuator_status_topic(ACTUATOR),
             lambda m: self.statuses.append(LoopStatus.from_pairs(pairs_of(m))),
             common.latched_qos())
         self.trajectory_publisher = self.helper.create_publisher(
-            JointTrajectory, common.TRAJECTORY_TOPIC, common.latched_qos())
-        self.run_publisher = self.helper.create_publisher(DiagnosticStatus, common.RUN_TOPIC, 10)
+            JointTrajectory, TRAJECTORY_TOPIC, common.latched_qos())
+        self.run_publisher = self.helper.create_publisher(DiagnosticStatus, RUN_TOPIC, 10)
         self.run: Optional[RunMessage] = None  # said every 50 ms while set
         self.helper.create_timer(0.05, self._say_run)
         self.reset_client = self.helper.create_client(Trigger, f'/{ACTUATOR}/reset')
@@ -132,7 +133,7 @@ class Harness:
 
     def _say_run(self) -> None:
         if self.run is not None:
-            self.run_publisher.publish(word_message(common.RUN_STATUS_NAME,
+            self.run_publisher.publish(word_message(RUN_STATUS_NAME,
                                                     self.run.to_pairs()))
 
     def publish_plan(self, times_s, positions_m, velocities_m_s, lead_in_s: float) -> int:

@@ -8,8 +8,10 @@ from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.kinematics import TwoLinkArm
 from flexure_ctrl.core.run import ACTUATOR_NAMES, LoopStatus, RunMessage, RunState
 from flexure_ctrl.core.trajectory import SinePath
-from flexure_ctrl.nodes import common
-from flexure_ctrl.nodes.common import COMMAND_TOPIC, DEMAND_TOPIC, latched_qos, SETPOINTS_TOPIC
+from flexure_ctrl.interface import (actuator_status_topic, COMMAND_TOPIC, DEMAND_TOPIC,
+                                    RUN_STATUS_NAME, RUN_TOPIC, SETPOINTS_TOPIC,
+                                    TRAJECTORY_TOPIC)
+from flexure_ctrl.nodes.common import latched_qos
 from flexure_ctrl.nodes.inverse_solver import InverseSolverNode
 from flexure_ctrl.nodes.run_messages import pairs_of, word_message
 from flexure_ctrl.nodes.trajectory_generator import TrajectoryGenerator
@@ -92,14 +94,14 @@ class FakeLoops:
     def __init__(self, node):
         self.status = {name: LoopStatus(ready=True) for name in ACTUATOR_NAMES}
         self.publishers = {name: node.create_publisher(
-            DiagnosticStatus, common.actuator_status_topic(name), latched_qos())
+            DiagnosticStatus, actuator_status_topic(name), latched_qos())
             for name in ACTUATOR_NAMES}
         self.plans = []
         self.runs = []
         self.hold_plans = True
-        node.create_subscription(JointTrajectory, common.TRAJECTORY_TOPIC, self._on_plan,
+        node.create_subscription(JointTrajectory, TRAJECTORY_TOPIC, self._on_plan,
                                  latched_qos())
-        node.create_subscription(DiagnosticStatus, common.RUN_TOPIC, lambda m: self.runs.append(
+        node.create_subscription(DiagnosticStatus, RUN_TOPIC, lambda m: self.runs.append(
             (time.monotonic(), RunMessage.from_pairs(pairs_of(m)))),
             100)
         for name in ACTUATOR_NAMES:
@@ -142,7 +144,7 @@ def test_setpoints_realise_the_command_through_the_table(harness_factory):
     setpoints = harness.collect(JointState, SETPOINTS_TOPIC)
     solver = harness.add(InverseSolverNode(context=harness.context))
     commands = harness.probe.create_publisher(PointStamped, COMMAND_TOPIC, 100)
-    run = harness.probe.create_publisher(DiagnosticStatus, common.RUN_TOPIC, 10)
+    run = harness.probe.create_publisher(DiagnosticStatus, RUN_TOPIC, 10)
     assert harness.spin_until(lambda: commands.get_subscription_count() > 0
                               and run.get_subscription_count() > 0
                               and all(s.get_publisher_count() > 0
@@ -180,7 +182,7 @@ def test_setpoints_realise_the_command_through_the_table(harness_factory):
     velocities = np.array([s.velocity for s in setpoints])
     assert np.abs(velocities).max() > 0.01
     # While a run lasts, command points are left to the run's plan: no setpoints.
-    run.publish(word_message(common.RUN_STATUS_NAME, RunMessage(RunState.RUNNING, 5).to_pairs()))
+    run.publish(word_message(RUN_STATUS_NAME, RunMessage(RunState.RUNNING, 5).to_pairs()))
     assert harness.spin_until(lambda: solver.run_active)
     count = len(setpoints)
     for k in range(10):
@@ -190,7 +192,7 @@ def test_setpoints_realise_the_command_through_the_table(harness_factory):
     assert len(setpoints) == count
     # After the run, its own command points still in flight (stamped before its end) are
     # not a jog; a command stamped after it is.
-    run.publish(word_message(common.RUN_STATUS_NAME, RunMessage(RunState.STOPPED, 5).to_pairs()))
+    run.publish(word_message(RUN_STATUS_NAME, RunMessage(RunState.STOPPED, 5).to_pairs()))
     assert harness.spin_until(lambda: not solver.run_active)
     late, fresh = PointStamped(), PointStamped()
     late.header.stamp = harness.probe.get_clock().now().to_msg()

@@ -11,7 +11,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core.tracker import declared_targets
 from flexure_ctrl.core.tracker import RigTransform, TrackerLineFormat
-from flexure_ctrl.nodes.common import DIAGNOSTICS_TOPIC, tracker_topic
+from flexure_ctrl.interface import DIAGNOSTICS_TOPIC, tracker_topic
 from flexure_ctrl.nodes.tracker_bridge import STATUS_NAME, TrackerBridge
 from flexure_ctrl.nodes.tracker_bridge import TrackerBridgeConfigError
 from flexure_ctrl.sim.tracker_server import (TrackerServer, TrackerServerHostError,

@@ -38,6 +38,7 @@ from typing import Deque, Dict, List, Optional, Sequence, Tuple, Union
 from flexure_ctrl.core.design import (CharacterisationData, Design, design_from_parameters,
                                       design_to_parameters, LinkGeometry, MIN_TABLE_POINTS)
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.interface import ACTUATOR_NAMES
 import numpy as np
 import yaml
 
@@ -47,7 +48,7 @@ DOWN = 'down'
 # Extensions this close beyond the stroke still count as inside (float round-off).
 STROKE_TOLERANCE_M = 1e-9
 # Target names of each joint's output body: joint 1 ('actuator_1') and joint 2.
-TARGET_NAMES = {'actuator_1': ('tip1_a', 'tip1_b'), 'actuator_2': ('tip2_a', 'tip2_b')}
+TARGET_NAMES = dict(zip(ACTUATOR_NAMES, (('tip1_a', 'tip1_b'), ('tip2_a', 'tip2_b'))))
 DEFAULT_OFFSET_A_M = (0.0, -0.010)
 DEFAULT_OFFSET_B_M = (0.0, -0.074)
 _NS_PER_S = 1_000_000_000

@@ -28,10 +28,10 @@ import math
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 from flexure_ctrl.core.errors import FlexureCtrlError, UnreachablePointError
+from flexure_ctrl.interface import ACTUATOR_NAMES
 import numpy as np
 
 NS_PER_S = 1_000_000_000
-ACTUATOR_NAMES = ('actuator_1', 'actuator_2')
 
 
 class PlanError(FlexureCtrlError, ValueError):

@@ -14,13 +14,10 @@ from typing import Dict, List, Tuple, Union
 from flexure_ctrl.core.bag import BagReader
 from flexure_ctrl.core.correction import NS_PER_S, RecordedRun
 from flexure_ctrl.core.errors import CorrectionError
+from flexure_ctrl.interface import (COMMAND_TOPIC, CORRECTION_TOPICS, DEMAND_PATH_TOPIC,
+                                    DEMAND_TOPIC, END_TOPIC)
 import numpy as np
 
-DEMAND_TOPIC = '/flexure/demand'
-COMMAND_TOPIC = '/flexure/command'
-DEMAND_PATH_TOPIC = '/flexure/demand_path'
-END_TOPIC = '/flexure/tracker/end'
-RUN_TOPICS = (DEMAND_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC, END_TOPIC)
 # A pause this long in the demand separates two runs (the demand runs at 100 Hz).
 RUN_GAP_S = 0.5
 
@@ -42,15 +39,15 @@ def load_runs(bag_path: Union[str, Path]) -> List[RecordedRun]:
     :raises flexure_ctrl.core.bag.BagError: the bag cannot be read.
     """
     reader = BagReader(bag_path)
-    missing = [topic for topic in RUN_TOPICS if topic not in reader.topics()]
+    missing = [topic for topic in CORRECTION_TOPICS if topic not in reader.topics()]
     if missing:
         raise CorrectionError(f'{bag_path}: no {", ".join(missing)} recorded; a run needs '
-                              f'{", ".join(RUN_TOPICS)}')
+                              f'{", ".join(CORRECTION_TOPICS)}')
     demand: Dict[int, Tuple[float, float]] = {}
     command: Dict[int, Tuple[float, float]] = {}
     tracked: List[Tuple[int, float, float]] = []
     path_starts: List[Tuple[int, float]] = []
-    for message, decoded in reader.decoded(RUN_TOPICS):
+    for message, decoded in reader.decoded(CORRECTION_TOPICS):
         topic = message.topic
         if topic == END_TOPIC:
             tracked.append((_stamp_ns(decoded.header), *_point(decoded)))

@@ -49,13 +49,15 @@ from typing import List, Optional
 
 import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from flexure_ctrl import interface
 from flexure_ctrl.core.actuator_drive import ActuatorDrive, Mode
 from flexure_ctrl.core.commissioning import load_eds
 from flexure_ctrl.core.drive_client import DriveError
 from flexure_ctrl.core.drive_link import DriveConnectError, DriveLink
-from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.errors import FlexureCtrlError, one_line
 from flexure_ctrl.core.ploop import ActuatorController, LoopLimits, ProportionalLoop
-from flexure_ctrl.core.run import ACTUATOR_NAMES, LoopStatus, PlanError, RunMessage
+from flexure_ctrl.core.run import LoopStatus, PlanError, RunMessage
+from flexure_ctrl.interface import ACTUATOR_NAMES
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.actuator_support import declare_loop_parameters, diagnostic_values
 from flexure_ctrl.nodes.actuator_support import level_of, LoopThread, status_of
@@ -118,25 +120,25 @@ class ActuatorLoop(LifecycleNode):
         self.drive.problem = 'unconfigured: configure opens the bus and commissions the drive'
 
         self._state = JointState(name=[self.actuator], position=[0.0], velocity=[0.0])
-        self._status_name = common.STATUS_PREFIX + self.actuator
+        self._status_name = interface.STATUS_PREFIX + self.actuator
         self._hardware_id = f'can node {p.node_id}'
         self.state_publisher = self.create_publisher(
-            JointState, common.actuator_state_topic(self.actuator), 10)
+            JointState, interface.actuator_state_topic(self.actuator), 10)
         self.status_publisher = self.create_publisher(
-            DiagnosticStatus, common.actuator_status_topic(self.actuator), common.latched_qos())
+            DiagnosticStatus, interface.actuator_status_topic(self.actuator), common.latched_qos())
         self.diagnostics_publisher = self.create_publisher(
-            DiagnosticArray, common.DIAGNOSTICS_TOPIC, 10)
+            DiagnosticArray, interface.DIAGNOSTICS_TOPIC, 10)
         # Only the newest jog setpoint matters; best effort also matches reliable publishers.
         self.create_subscription(
-            JointState, common.SETPOINTS_TOPIC, self._on_setpoints,
+            JointState, interface.SETPOINTS_TOPIC, self._on_setpoints,
             QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                        reliability=ReliabilityPolicy.BEST_EFFORT))
-        self.create_subscription(JointTrajectory, common.TRAJECTORY_TOPIC,
+        self.create_subscription(JointTrajectory, interface.TRAJECTORY_TOPIC,
                                  self._on_trajectory, common.latched_qos())
-        self.create_subscription(DiagnosticStatus, common.RUN_TOPIC, self._on_run, 10)
+        self.create_subscription(DiagnosticStatus, interface.RUN_TOPIC, self._on_run, 10)
         for peer in ACTUATOR_NAMES:
             if peer != self.actuator:
-                self.create_subscription(DiagnosticStatus, common.actuator_status_topic(peer),
+                self.create_subscription(DiagnosticStatus, interface.actuator_status_topic(peer),
                                          lambda m, p=peer: self._on_peer(p, m),
                                          common.latched_qos())
         self.create_service(Trigger, '~/reset', self._on_reset)
@@ -221,7 +223,7 @@ class ActuatorLoop(LifecycleNode):
             try:
                 client.start(timeout_s=_ACTIVATE_TIMEOUT_S)
             except (DriveError, can.CanError, OSError) as error:
-                self._refuse(f'activate failed: {type(error).__name__}: {error}')
+                self._refuse(f'activate failed: {type(error).__name__}: {one_line(error)}')
                 return TransitionCallbackReturn.FAILURE
             self.get_logger().info(f'drive node {client.node_id} operation enabled at '
                                    f'{client.position_m * 1e3:+.3f} mm')
@@ -294,7 +296,8 @@ class ActuatorLoop(LifecycleNode):
         try:
             client.disable(confirm_timeout_s=_DISABLE_CONFIRM_S)
         except (can.CanError, OSError) as error:
-            self.drive.events.append((logging.ERROR, f'could not disable the drive: {error}'))
+            self.drive.events.append((logging.ERROR,
+                                      f'could not disable the drive: {one_line(error)}'))
 
     # ------------------------------------------------------------------ the loop
 
@@ -365,7 +368,7 @@ class ActuatorLoop(LifecycleNode):
             self._report()
 
     def _on_run(self, message: DiagnosticStatus) -> None:
-        if message.name != common.RUN_STATUS_NAME:
+        if message.name != interface.RUN_STATUS_NAME:
             return
         try:
             run = RunMessage.from_pairs(pairs_of(message))
@@ -476,7 +479,8 @@ class ActuatorLoop(LifecycleNode):
             try:
                 disabled = self.link.close(confirm_timeout_s=_DISABLE_CONFIRM_S)
             except (can.CanError, OSError) as error:
-                self.get_logger().error(f'safe stop: could not disable the drive: {error}')
+                self.get_logger().error(
+                    f'safe stop: could not disable the drive: {one_line(error)}')
             else:
                 if disabled is not None:
                     self.get_logger().info('safe stop: drive disabled at zero velocity' if

@@ -19,7 +19,8 @@ from flexure_ctrl.core.commissioning import DriveDescription
 from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_client import DriveClient
 from flexure_ctrl.core.ploop import ActuatorController
-from flexure_ctrl.core.run import ACTUATOR_NAMES, Following, LoopStatus
+from flexure_ctrl.core.run import Following, LoopStatus
+from flexure_ctrl.interface import ACTUATOR_NAMES
 from flexure_ctrl.nodes.common import float_descriptor, int_descriptor, typed_descriptor
 import numpy as np
 from rcl_interfaces.msg import ParameterType

@@ -28,8 +28,8 @@ from typing import Callable, Optional
 
 from flexure_ctrl.core.characterisation import (CharacterisationError, CommandConflictError,
                                                 RunAborted, SweepRunner)
-from flexure_ctrl.nodes.common import (ACTUATOR_NAMES, actuator_state_topic, SETPOINTS_TOPIC,
-                                       tracker_topic)
+from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic, CHARACTERISER,
+                                    SETPOINTS_TOPIC, tracker_topic, TRAJECTORY_GENERATOR)
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -37,7 +37,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 _NS_PER_S = 1_000_000_000
-CONFLICTING_NODES = ('trajectory_generator',)
+CONFLICTING_NODES = (TRAJECTORY_GENERATOR,)
 
 
 def _stamp_ns(message) -> int:
@@ -66,7 +66,7 @@ class Characteriser(Node):
                  hold_other: bool = True,
                  on_finished: Optional[Callable[[Optional[Exception]], None]] = None,
                  **kwargs) -> None:
-        super().__init__('characteriser', **kwargs)
+        super().__init__(CHARACTERISER, **kwargs)
         if actuator not in ACTUATOR_NAMES:
             raise CharacterisationError(f'actuator must be one of {ACTUATOR_NAMES}')
         self.runner = runner

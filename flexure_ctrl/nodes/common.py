@@ -5,17 +5,22 @@ Nodes stay thin: they declare parameters (with descriptors and ranges, so that a
 value is rejected when it is set), wire topics and timers, and call the core.
 """
 
+import os
+import re
 import signal
 import sys
 import threading
-from typing import Callable, Optional, Sequence
+from typing import Callable, List, Optional, Sequence, Union
 
-from flexure_ctrl.core.design import Design, design_from_parameters, nest_dotted, TABLE_KEYS
-from flexure_ctrl.core.errors import FlexureCtrlError
-from flexure_ctrl.core.run import ACTUATOR_NAMES  # noqa: F401 (the nodes' import)
+from flexure_ctrl.core.design import (Design, design_from_parameters, DESIGN_PARAMETERS,
+                                      ensure_ament_prefix_path, holds_design, load_design,
+                                      nest_dotted, ParameterKind, read_parameter_file)
+from flexure_ctrl.core.errors import (DesignFileError, FlexureCtrlError, one_line,
+                                      quiet_library_loggers)
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rcl_interfaces.msg import ParameterType
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
@@ -24,41 +29,14 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
 RCLError = rclpy_implementation.RCLError
+UnknownROSArgsError = rclpy_implementation.UnknownROSArgsError
 RIG_FRAME = 'rig'
-
-# Topic and service names: the package's public interface (README lists them).
-DEMAND_TOPIC = '/flexure/demand'
-DEMAND_PATH_TOPIC = '/flexure/demand_path'
-COMMAND_PATH_TOPIC = '/flexure/command_path'
-COMMAND_TOPIC = '/flexure/command'
-SETPOINTS_TOPIC = '/flexure/actuator_setpoints'
-TRAJECTORY_TOPIC = '/flexure/actuator_trajectory'
-RUN_TOPIC = '/flexure/run'
-DIAGNOSTICS_TOPIC = '/diagnostics'
-# DiagnosticStatus names: the run owner's word on RUN_TOPIC, and a loop's own.
-RUN_STATUS_NAME = 'flexure_ctrl/run'
-STATUS_PREFIX = 'flexure_ctrl/'
 
 
 def latched_qos() -> QoSProfile:
     """Reliable, transient-local QoS: a late subscriber still gets the last message."""
     return QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                       reliability=ReliabilityPolicy.RELIABLE)
-
-
-def actuator_status_topic(actuator: str) -> str:
-    """Topic of one loop's readiness and problems, e.g. ``/flexure/actuator_1/status``."""
-    return f'/flexure/{actuator}/status'
-
-
-def actuator_state_topic(actuator: str) -> str:
-    """Topic of one actuator's measured state, e.g. ``/flexure/actuator_1/state``."""
-    return f'/flexure/{actuator}/state'
-
-
-def tracker_topic(target: str) -> str:
-    """Topic of one tracker target's point, e.g. ``/flexure/tracker/end``."""
-    return f'/flexure/tracker/{target}'
 
 
 def float_descriptor(description: str, low: float, high: float, step: float = 0.0,
@@ -85,40 +63,66 @@ def typed_descriptor(parameter_type: int, description: str,
                                read_only=read_only)
 
 
-_DESIGN_PARAMETERS = (
-    [('design.name', ParameterType.PARAMETER_STRING, 'design name'),
-     ('design.description', ParameterType.PARAMETER_STRING, 'what the design is'),
-     ('design.provenance', ParameterType.PARAMETER_STRING, 'synthetic or measured'),
-     ('design.provenance_note', ParameterType.PARAMETER_STRING, 'how the table was made'),
-     ('design.recommended', ParameterType.PARAMETER_BOOL, 'false for designs to avoid'),
-     ('design.warning', ParameterType.PARAMETER_STRING, 'why a design is not recommended'),
-     ('design.branch', ParameterType.PARAMETER_STRING, 'above or below'),
-     ('design.stroke_limit_m', ParameterType.PARAMETER_DOUBLE,
-      'symmetric actuator stroke limit (m)')]
-    + [(f'design.table.{key}', ParameterType.PARAMETER_DOUBLE_ARRAY,
-        'characterisation table column (m or rad)') for key in TABLE_KEYS]
-    + [(f'design.table_joint_2.{key}', ParameterType.PARAMETER_DOUBLE_ARRAY,
-        "joint 2's own table column (m or rad), if the joints differ; optional")
-       for key in TABLE_KEYS]
-    + [(f'design.geometry.{key}', ParameterType.PARAMETER_DOUBLE, 'link geometry (m)')
-       for key in ('link1_length_m', 'link1_offset_m', 'link2_length_m', 'link2_offset_m')])
+# The ROS type each kind of design parameter is declared with (the kinds and the keys are
+# the core's, flexure_ctrl.core.design.DESIGN_PARAMETERS, which checks files the same way).
+_ROS_TYPES = {
+    ParameterKind.STRING: ParameterType.PARAMETER_STRING,
+    ParameterKind.BOOL: ParameterType.PARAMETER_BOOL,
+    ParameterKind.DOUBLE: ParameterType.PARAMETER_DOUBLE,
+    ParameterKind.DOUBLE_ARRAY: ParameterType.PARAMETER_DOUBLE_ARRAY,
+}
 
 
-def declare_design(node: Node) -> Design:
+def params_files_in(args: Sequence[str]) -> List[str]:
+    """Return the ``--params-file FILE`` paths given in the ``--ros-args`` of ``args``."""
+    files: List[str] = []
+    in_ros_args = False
+    tokens = list(args)
+    for index, token in enumerate(tokens):
+        if token == '--ros-args':
+            in_ros_args = True
+        elif token == '--':
+            in_ros_args = False
+        elif in_ros_args and token == '--params-file' and index + 1 < len(tokens):
+            files.append(tokens[index + 1])
+    return files
+
+
+def params_label(files: Sequence[str]) -> str:
+    """Name the parameter files in a message: ``a.yaml, b.yaml`` (or that there are none)."""
+    return ', '.join(files) if files else 'parameters (no --params-file given)'
+
+
+def declare_design(node: Node, params_files: Optional[Sequence[str]] = None) -> Design:
     """
     Declare the design parameters (read-only) and build the validated design.
 
     The values come from ``--params-file config/designs/<name>.yaml``; a missing or bad
-    value raises :class:`~flexure_ctrl.core.errors.DesignFileError` naming the key.
+    value raises :class:`~flexure_ctrl.core.errors.DesignFileError` naming the design file
+    (the params file that sets ``design.*``; else all of them), the key and the value, in
+    the words ``flexure-ctrl solve`` uses for the same file.
+
+    :param params_files: the node's params files; None: those of ``sys.argv``.
     """
+    files = params_files_in(sys.argv) if params_files is None else list(params_files)
+    design_file = next((path for path in files if holds_design(path)), None)
+    source = design_file or f'{params_label(files)} (no design.* set)'
     flat = {}
-    for name, parameter_type, description in _DESIGN_PARAMETERS:
-        descriptor = ParameterDescriptor(description=description, read_only=True)
+    for declared in DESIGN_PARAMETERS:
+        descriptor = ParameterDescriptor(description=declared.description, read_only=True)
         # Statically typed with no default: absent from the file means not set.
-        parameter = node.declare_parameter(name, Parameter.Type(parameter_type), descriptor)
+        try:
+            parameter = node.declare_parameter(
+                declared.name, Parameter.Type(_ROS_TYPES[declared.kind]), descriptor)
+        except InvalidParameterTypeException as error:
+            # rclpy's words name neither the file nor the fix; the core's check of the
+            # file finds the same key first (it checks in this order) and says both.
+            if design_file is not None:
+                load_design(design_file)
+            raise DesignFileError(source, declared.name, one_line(error)) from None
         if parameter.type_ != Parameter.Type.NOT_SET:
-            flat[name] = parameter.value
-    return design_from_parameters(nest_dotted(flat), '--params-file (design)')
+            flat[declared.name] = parameter.value
+    return design_from_parameters(nest_dotted(flat), source)
 
 
 def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
@@ -127,8 +131,12 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
 
     A node that commands hardware defines ``safe_stop()``; it is called in ``finally``,
     whatever ended the spin, before the node is destroyed.
+
+    A refused start (a params file rcl cannot read, a bad design or parameter value, a
+    drive that never answered) ends the process with one ``[FATAL]`` line naming the file,
+    key and value, and exit status 1: no traceback.
     """
-    rclpy.init(args=args)
+    files = _start_rclpy(args)
     node = None
     refused = None
     try:
@@ -136,9 +144,9 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except FlexureCtrlError as error:
+    except (FlexureCtrlError, ParameterException) as error:
         # A refused configuration or plan, a drive that never answered: said in one line.
-        refused = error
+        refused = _refusal(error, files)
     except RuntimeError:
         # A signal shuts the context down from under the executor. Mid wait-set it raises
         # RCLError (ros2/rclpy#398); mid take_message a bare pybind11 RuntimeError
@@ -149,8 +157,84 @@ def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = N
     finally:
         _tear_down(node)
     if refused is not None:
-        print(f'[FATAL] {refused}', file=sys.stderr, flush=True)
-        raise SystemExit(1)
+        _exit_refused(refused)
+
+
+class NodeStartError(FlexureCtrlError):
+    """A node cannot start: its command line or a params file is refused."""
+
+
+def _prepare_process(args: Optional[Sequence[str]]) -> List[str]:
+    """
+    Set up a node's process: environment and library loggers; return its params files.
+
+    ``AMENT_PREFIX_PATH`` defaults to the venv (no ``source tools/env.sh`` needed), and
+    the libraries' loggers print only what the node does not say itself.
+    """
+    ensure_ament_prefix_path()
+    quiet_library_loggers()
+    return params_files_in(sys.argv if args is None else args)
+
+
+def _start_rclpy(args: Optional[Sequence[str]], **options) -> List[str]:
+    """Prepare the process and init rclpy, or end it with one line; return the params files."""
+    files = _prepare_process(args)
+    try:
+        _init_rclpy(args, files, **options)
+    except NodeStartError as error:
+        _exit_refused(one_line(error))
+    return files
+
+
+# rcl's messages end in the C source places of the error: ', at /project/src/parse.c:350'.
+_RCL_SOURCE_PLACE = re.compile(r', at \S+:\d+')
+
+
+def _init_rclpy(args: Optional[Sequence[str]], files: Sequence[str], **options) -> None:
+    """
+    ``rclpy.init``; a params file rcl refuses raises :class:`NodeStartError` in one line.
+
+    The files are checked first, so that rcl (which logs a line of its own) never sees one
+    the core refuses: missing, not YAML, a design value of the wrong type or a bad design.
+    The line is then the core's (file, key and value); else rcl's first line.
+    """
+    for path in files:
+        if not os.path.isfile(path):
+            raise NodeStartError(f'--params-file {path}: no such file')
+    problem = _params_problem(files)
+    if problem is not None:
+        raise NodeStartError(problem)
+    try:
+        rclpy.init(args=args, **options)
+    except UnknownROSArgsError as error:
+        raise NodeStartError(f'unknown ROS arguments: {one_line(error)}') from None
+    except RCLError as error:
+        raise NodeStartError(_RCL_SOURCE_PLACE.sub('', one_line(error))) from None
+
+
+def _params_problem(files: Sequence[str]) -> Optional[str]:
+    """Return the core's one line on the first of ``files`` it refuses, or None."""
+    for path in files:
+        try:
+            read_parameter_file(path)
+            if holds_design(path):
+                load_design(path)
+        except DesignFileError as error:
+            return str(error)
+    return None
+
+
+def _refusal(error: Union[FlexureCtrlError, ParameterException], files: Sequence[str]) -> str:
+    """One line on why a node refused to run; rclpy's parameter errors name the files."""
+    if isinstance(error, ParameterException):
+        return f'{params_label(files)}: {one_line(error)}'
+    return one_line(error)
+
+
+def _exit_refused(refused: str) -> None:
+    """Print the one ``[FATAL]`` line and end the process with status 1."""
+    print(f'[FATAL] {refused}', file=sys.stderr, flush=True)
+    raise SystemExit(1)
 
 
 def _tear_down(node: Optional[Node]) -> None:
@@ -184,10 +268,11 @@ def run_node_to_a_clean_stop(node_factory: Callable[[], Node],
     def request_stop(signal_number, frame) -> None:
         stop_requested.set()
 
+    files = _start_rclpy(args, signal_handler_options=SignalHandlerOptions.NO)
     previous = {number: signal.signal(number, request_stop)
                 for number in (signal.SIGINT, signal.SIGTERM)}
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
+    refused = None
     try:
         node = node_factory()
         executor = SingleThreadedExecutor()
@@ -196,9 +281,13 @@ def run_node_to_a_clean_stop(node_factory: Callable[[], Node],
             executor.spin_once(timeout_sec=_STOP_POLL_S)
     except ExternalShutdownException:
         pass
+    except (FlexureCtrlError, ParameterException) as error:
+        refused = _refusal(error, files)
     finally:
         try:
             _tear_down(node)
         finally:
             for number, handler in previous.items():
                 signal.signal(number, handler)
+    if refused is not None:
+        _exit_refused(refused)

@@ -19,9 +19,9 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.errors import UnreachablePointError
 from flexure_ctrl.core.inverse import InverseSolver
 from flexure_ctrl.core.run import RunMessage, RunState
-from flexure_ctrl.nodes.common import (ACTUATOR_NAMES, COMMAND_TOPIC, declare_design,
-                                       DIAGNOSTICS_TOPIC, run_node, RUN_STATUS_NAME, RUN_TOPIC,
-                                       SETPOINTS_TOPIC)
+from flexure_ctrl.interface import (ACTUATOR_NAMES, COMMAND_TOPIC, DIAGNOSTICS_TOPIC,
+                                    INVERSE_SOLVER, RUN_STATUS_NAME, RUN_TOPIC, SETPOINTS_TOPIC)
+from flexure_ctrl.nodes.common import declare_design, run_node
 from flexure_ctrl.nodes.run_messages import pairs_of
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
@@ -34,7 +34,7 @@ class InverseSolverNode(Node):
     """Turn each command point into the two actuator extension setpoints."""
 
     def __init__(self, **kwargs):
-        super().__init__('inverse_solver', **kwargs)
+        super().__init__(INVERSE_SOLVER, **kwargs)
         self.design = declare_design(self)
         self.solver = InverseSolver.from_design(self.design)
         self._previous: Optional[tuple] = None

@@ -26,6 +26,7 @@ from typing import Dict, Optional
 
 from builtin_interfaces.msg import Time
 from flexure_ctrl.core.bag import BagError, BagReader
+from flexure_ctrl.interface import CLOCK_TOPIC, PLAYER
 from flexure_ctrl.nodes.bag_qos import message_class, publisher_qos
 from flexure_ctrl.nodes.common import float_descriptor, run_node, typed_descriptor
 from rcl_interfaces.msg import ParameterType
@@ -36,7 +37,6 @@ from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 _NS_PER_S = 1_000_000_000
-CLOCK_TOPIC = '/clock'
 
 
 class PlayerConfigError(BagError, ValueError):
@@ -46,7 +46,7 @@ class PlayerConfigError(BagError, ValueError):
 class Player(Node):
     """Publish a bag's messages on their topics, with the recorded timing."""
 
-    def __init__(self, node_name: str = 'player', **kwargs) -> None:
+    def __init__(self, node_name: str = PLAYER, **kwargs) -> None:
         """
         Declare parameters, open the bag, create the publishers; start if ``autostart``.
 

@@ -28,27 +28,16 @@ import time
 from typing import Dict, List, Optional, Set, Tuple
 
 from flexure_ctrl.core.bag import BagError, BagWriter
+from flexure_ctrl.interface import INTAKE_SUFFIX, RECORDER, RUN_TOPICS
 from flexure_ctrl.nodes.bag_qos import message_class, qos_to_dict, RECORD_DEPTH
 from flexure_ctrl.nodes.bag_qos import subscription_qos
-from flexure_ctrl.nodes.common import ACTUATOR_NAMES, actuator_state_topic
-from flexure_ctrl.nodes.common import actuator_status_topic
-from flexure_ctrl.nodes.common import COMMAND_PATH_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC
-from flexure_ctrl.nodes.common import DEMAND_TOPIC, DIAGNOSTICS_TOPIC, float_descriptor
-from flexure_ctrl.nodes.common import run_node_to_a_clean_stop, RUN_TOPIC, SETPOINTS_TOPIC
-from flexure_ctrl.nodes.common import tracker_topic, TRAJECTORY_TOPIC, typed_descriptor
+from flexure_ctrl.nodes.common import float_descriptor, run_node_to_a_clean_stop
+from flexure_ctrl.nodes.common import typed_descriptor
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.subscription import Subscription
 
-# The topics of a run, recorded by default: its plan and words, the paths, the actuators'
-# 500 Hz states, the tracker's end point and the diagnostics (what a user needs to see why
-# a run went wrong), and the jog stream.
-RUN_TOPICS = [
-    DEMAND_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC, COMMAND_PATH_TOPIC, TRAJECTORY_TOPIC,
-    RUN_TOPIC, SETPOINTS_TOPIC, tracker_topic('end'), DIAGNOSTICS_TOPIC,
-] + [topic(actuator) for actuator in ACTUATOR_NAMES
-     for topic in (actuator_state_topic, actuator_status_topic)]
 # Never recorded when recording "every topic": the graph's own plumbing.
 _GRAPH_TOPICS = ('/rosout', '/parameter_events')
 
@@ -61,7 +50,7 @@ def default_bag_name(now_s: Optional[float] = None) -> str:
 class Recorder(Node):
     """Record topics, raw, into one bag folder."""
 
-    def __init__(self, node_name: str = 'recorder', **kwargs) -> None:
+    def __init__(self, node_name: str = RECORDER, **kwargs) -> None:
         """
         Declare parameters, open the bag and start watching the graph.
 
@@ -71,7 +60,7 @@ class Recorder(Node):
         :raises rclpy.exceptions.InvalidParameterValueException: a value out of range.
         """
         super().__init__(node_name, **kwargs)
-        self.declare_parameter('topics', RUN_TOPICS, typed_descriptor(
+        self.declare_parameter('topics', list(RUN_TOPICS), typed_descriptor(
             ParameterType.PARAMETER_STRING_ARRAY,
             'topics to record; empty: every topic in the graph', read_only=True))
         self.declare_parameter('bag_dir', 'bags', typed_descriptor(
@@ -102,7 +91,7 @@ class Recorder(Node):
         # executor wake-up per message, recording a run (500 Hz tracker points) took 46 %
         # of a core on the 2-core development machine, beside the simulated rig; taking
         # every 10 ms, 16 %. The log time is still when DDS received the message.
-        self._intake = Node(f'{self.get_name()}_intake', context=self.context,
+        self._intake = Node(f'{self.get_name()}{INTAKE_SUFFIX}', context=self.context,
                             use_global_arguments=False, start_parameter_services=False,
                             enable_rosout=False)
         self._topic_subscriptions: List[Tuple[str, Subscription]] = []

@@ -48,8 +48,9 @@ from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.tracker import declared_targets, END_TARGET
 from flexure_ctrl.core.tracker import (DEFAULT_FIELDS, LineAssembler, parse_line,
                                        RigTransform, TrackerLineFormat, TrackerParseError)
-from flexure_ctrl.nodes.common import (DIAGNOSTICS_TOPIC, float_descriptor, int_descriptor,
-                                       RIG_FRAME, run_node, tracker_topic, typed_descriptor)
+from flexure_ctrl.interface import DIAGNOSTICS_TOPIC, TRACKER_BRIDGE, tracker_topic
+from flexure_ctrl.nodes.common import (float_descriptor, int_descriptor, RIG_FRAME, run_node,
+                                       typed_descriptor)
 from geometry_msgs.msg import PointStamped
 import numpy as np
 from rcl_interfaces.msg import ParameterType
@@ -86,7 +87,7 @@ class TrackerBridge(Node):
     """Read the laser tracker's TCP stream and publish each target's rig-frame point."""
 
     def __init__(self, **kwargs):
-        super().__init__('tracker_bridge', **kwargs)
+        super().__init__(TRACKER_BRIDGE, **kwargs)
         string, strings, doubles = (ParameterType.PARAMETER_STRING,
                                     ParameterType.PARAMETER_STRING_ARRAY,
                                     ParameterType.PARAMETER_DOUBLE_ARRAY)

@@ -30,6 +30,7 @@ import math
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from flexure_ctrl import interface
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.inverse import InverseSolver
 from flexure_ctrl.core.run import LoopStatus, RunSupervisor
@@ -61,7 +62,7 @@ class TrajectoryGenerator(Node):
     """Plan, start, watch and end runs of the path; publish the demand while one lasts."""
 
     def __init__(self, **kwargs):
-        super().__init__('trajectory_generator', **kwargs)
+        super().__init__(interface.TRAJECTORY_GENERATOR, **kwargs)
         ranged = (
             ('rate_hz', 100.0, 'demand publication rate (Hz)', 1.0, 1000.0),
             ('plan_rate_hz', 100.0, 'points per second of the actuator plan (Hz)', 1.0, 1000.0),
@@ -106,20 +107,20 @@ class TrajectoryGenerator(Node):
         self._waiters = []
         self._autostart = value('autostart')
 
-        self.demand_publisher = self.create_publisher(PointStamped, common.DEMAND_TOPIC, 10)
-        self.command_publisher = self.create_publisher(PointStamped, common.COMMAND_TOPIC, 10)
+        self.demand_publisher = self.create_publisher(PointStamped, interface.DEMAND_TOPIC, 10)
+        self.command_publisher = self.create_publisher(PointStamped, interface.COMMAND_TOPIC, 10)
         latched = common.latched_qos()
-        self.demand_path_publisher = self.create_publisher(Path, common.DEMAND_PATH_TOPIC,
+        self.demand_path_publisher = self.create_publisher(Path, interface.DEMAND_PATH_TOPIC,
                                                            latched)
-        self.command_path_publisher = self.create_publisher(Path, common.COMMAND_PATH_TOPIC,
+        self.command_path_publisher = self.create_publisher(Path, interface.COMMAND_PATH_TOPIC,
                                                             latched)
         self.trajectory_publisher = self.create_publisher(JointTrajectory,
-                                                          common.TRAJECTORY_TOPIC, latched)
-        self.run_publisher = self.create_publisher(DiagnosticStatus, common.RUN_TOPIC, 10)
+                                                          interface.TRAJECTORY_TOPIC, latched)
+        self.run_publisher = self.create_publisher(DiagnosticStatus, interface.RUN_TOPIC, 10)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray,
-                                                           common.DIAGNOSTICS_TOPIC, 10)
+                                                           interface.DIAGNOSTICS_TOPIC, 10)
         for actuator in self.supervisor.actuators:
-            self.create_subscription(DiagnosticStatus, common.actuator_status_topic(actuator),
+            self.create_subscription(DiagnosticStatus, interface.actuator_status_topic(actuator),
                                      lambda m, a=actuator: self._on_status(a, m), latched)
         # ~/start awaits the loops; in a group of its own, so that the callbacks it awaits
         # (the loops' status, the heartbeat) run meanwhile.
@@ -279,7 +280,7 @@ class TrajectoryGenerator(Node):
     def _run_message(self) -> DiagnosticStatus:
         run = self.supervisor.message()
         level = DiagnosticStatus.ERROR if run.state is RunState.ABORTED else DiagnosticStatus.OK
-        return word_message(common.RUN_STATUS_NAME, run.to_pairs(), level,
+        return word_message(interface.RUN_STATUS_NAME, run.to_pairs(), level,
                             run.reason or run.state.value)
 
     def _run_changed(self) -> None:
