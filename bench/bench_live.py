@@ -34,7 +34,6 @@ import logging
 import os
 import re
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -42,6 +41,7 @@ import threading
 import time
 
 import can
+from flexure_ctrl.cli.launcher import free_port
 from flexure_ctrl.core.design import load_design
 from flexure_ctrl.core.inverse import InverseSolver
 from geometry_msgs.msg import PointStamped
@@ -60,12 +60,6 @@ RATE_HZ = 500.0
 PERIOD_S = 20.0
 LEAD_IN_S = 2.0
 LOOP_PRIORITY = 50
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(('127.0.0.1', 0))
-        return probe.getsockname()[1]
 
 
 def percentiles(values):

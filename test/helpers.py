@@ -8,10 +8,11 @@ Import them by module name (``from helpers import wait_for``): pytest's default
 """
 
 from contextlib import contextmanager
-import socket
 import threading
 import time
 from typing import Callable, Iterator, Optional, Sequence, TYPE_CHECKING
+
+from flexure_ctrl.cli.launcher import free_port  # noqa: F401 (the package's one, for tests)
 
 if TYPE_CHECKING:  # rclpy is imported only by the ROS helpers: core tests stay without it
     from rclpy.context import Context
@@ -20,13 +21,6 @@ if TYPE_CHECKING:  # rclpy is imported only by the ROS helpers: core tests stay 
 DEFAULT_TIMEOUT_S = 5.0
 POLL_S = 0.01
 SPIN_S = 0.02
-
-
-def free_port() -> int:
-    """Return a TCP port on 127.0.0.1 that nothing listens on now."""
-    with socket.socket() as probe:
-        probe.bind(('127.0.0.1', 0))
-        return probe.getsockname()[1]
 
 
 def wait_for(condition: Callable[[], object], timeout_s: float = DEFAULT_TIMEOUT_S,

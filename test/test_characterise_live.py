@@ -16,7 +16,7 @@ import tempfile
 import time
 
 from flexure_ctrl.cli.characterise_command import start_simulated_rig, true_joint_table
-from flexure_ctrl.cli.up_command import ProcessGroup
+from flexure_ctrl.cli.launcher import Launcher
 from flexure_ctrl.core.characterisation import read_points_csv
 from flexure_ctrl.core.design import find_design_file, load_design
 from flexure_ctrl.sim.config import load_sim_config
@@ -34,26 +34,13 @@ import yaml
 DESIGN = 'cfa'
 
 
-class _Quiet:
-    def __init__(self):
-        self.lines = []
-
-    def write(self, text):
-        self.lines.append(text)
-        return len(text)
-
-    def flush(self):
-        pass
-
-
 @pytest.fixture(scope='module')
 def rig():
     folder = tempfile.TemporaryDirectory(prefix='flexure_ctrl_char_test_')
     sim_config = Path(folder.name) / 'simulator.yaml'
     sim_config.write_text(yaml.safe_dump({'tracker': {
         'targets': ['tip1_a', 'tip1_b']}}))
-    log = _Quiet()
-    group = ProcessGroup(out=log)
+    group = Launcher('characterise', quiet=True)
     context = Context()
     rclpy.init(context=context)
     node = rclpy.create_node('characterise_probe', context=context)
@@ -65,8 +52,8 @@ def rig():
     try:
         assert start_simulated_rig(group, find_design_file(DESIGN).resolve(), sim_config,
                                    free_port(), free_port(), Path(folder.name)), \
-            ''.join(log.lines[-40:])
-        yield {'node': node, 'states': states, 'sim_config': sim_config, 'log': log}
+            '\n'.join(group.lines[-40:])
+        yield {'node': node, 'states': states, 'sim_config': sim_config}
     finally:
         group.stop_all()
         executor.shutdown()

@@ -7,10 +7,12 @@ import subprocess
 import sys
 import time
 
+from flexure_ctrl.cli.launcher import free_port, InGraph, Launcher, Listening
 from flexure_ctrl.cli.main import main
-from flexure_ctrl.cli.up_command import ProcessGroup, SIM_BACKGROUND_NICENESS
+from flexure_ctrl.cli.up_command import SIM_BACKGROUND_NICENESS
 from flexure_ctrl.core.design import load_design
 from flexure_ctrl.core.kinematics import TwoLinkArm
+from helpers import wait_for
 import numpy as np
 import pytest
 
@@ -72,44 +74,77 @@ def test_designs_lists_every_design(capsys):
 
 def test_a_background_process_runs_at_lower_priority_and_a_real_time_one_does_not():
     out = io.StringIO()
-    group = ProcessGroup(out=out)
     probe = [sys.executable, '-c', 'import os; print("niceness", os.nice(0))']
-    try:
+    with Launcher(out=out) as launcher:
         for name, niceness in (('loop', 0), ('inverse_solver', SIM_BACKGROUND_NICENESS)):
-            process, ready = group.start(name, probe, ready_marker='niceness',
-                                         niceness=niceness)
-            assert ready.wait(30.0)
+            process, _ = launcher.start(name, probe, niceness=niceness)
             process.wait(30.0)
-    finally:
-        group.stop_all()
+        wait_for(lambda: out.getvalue().count('] niceness ') == 2, 10.0, 'both outputs')
     mine = os.nice(0)
     assert f'[loop] niceness {mine}\n' in out.getvalue()
     assert (f'[inverse_solver] niceness {min(mine + SIM_BACKGROUND_NICENESS, 19)}\n'
             in out.getvalue())
 
 
-def test_a_process_is_ready_only_once_every_marker_has_appeared(tmp_path):
-    out = io.StringIO()
-    group = ProcessGroup(out=out)
+GATED = ('import os, sys, time\n'
+         'gate = sys.argv[1]\n'
+         'print("set up, not ready", flush=True)\n'
+         'while not os.path.exists(gate):\n'
+         '    time.sleep(0.01)\n')
+
+
+def test_a_server_is_up_once_its_ports_accept_connections_not_on_its_log(tmp_path):
+    # The simulated rig's readiness: both its servers listen. What it prints is not a signal.
     gate = tmp_path / 'go'
-    script = ('import os, time\n'
-              'print("operation enabled", flush=True)\n'
-              f'while not os.path.exists({str(gate)!r}):\n'
-              '    time.sleep(0.01)\n'
-              'print("setpoints from 1 publisher(s)", flush=True)\n'
-              'time.sleep(30)\n')
-    try:
-        _, ready = group.start('loop', [sys.executable, '-c', script],
-                               ready_marker=('operation enabled', 'setpoints from 1 '))
-        deadline = time.monotonic() + 30.0
-        while '[loop] operation enabled' not in out.getvalue():
-            assert time.monotonic() < deadline, 'the first marker never came'
-            time.sleep(0.01)
-        assert not ready.wait(0.5)  # the first marker alone is not enough
+    ports = (free_port(), free_port())
+    script = GATED + (
+        'import socket\n'
+        'servers = []\n'
+        f'for port in {ports!r}:\n'
+        '    server = socket.socket()\n'
+        '    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)\n'
+        "    server.bind(('127.0.0.1', port)); server.listen(4); servers.append(server)\n"
+        'time.sleep(60)\n')
+    with Launcher(quiet=True) as launcher:
+        _, up = launcher.start('sim', [sys.executable, '-c', script, str(gate)],
+                               Listening(ports))
+        wait_for(lambda: '[sim] set up, not ready' in launcher.lines, 30.0, 'the first line')
+        assert not up.wait(0.5)  # alive and talking, but nothing listens yet
         gate.touch()
-        assert ready.wait(30.0)
-    finally:
-        group.stop_all()
+        assert up.wait(30.0)
+        assert not launcher.first_exit.is_set()
+
+
+def test_a_node_is_up_once_the_graph_shows_its_endpoints(tmp_path):
+    gate = tmp_path / 'go'
+    script = GATED + (
+        'import rclpy\n'
+        'from std_msgs.msg import String\n'
+        'rclpy.init()\n'
+        "node = rclpy.create_node('gated_node')\n"
+        "node.create_publisher(String, '/flexure/gated', 1)\n"
+        'rclpy.spin(node)\n')
+    with Launcher(quiet=True) as launcher:
+        _, up = launcher.start('gated_node', [sys.executable, '-c', script, str(gate)],
+                               InGraph('gated_node', publishers=('/flexure/gated',)))
+        wait_for(lambda: '[gated_node] set up, not ready' in launcher.lines, 30.0, 'its line')
+        assert not up.wait(1.0)
+        gate.touch()
+        assert up.wait(30.0)
+        assert not launcher.first_exit.is_set()
+
+
+def test_bring_up_stops_at_a_process_that_ends_and_starts_nothing_after_it():
+    with Launcher(quiet=True) as launcher:
+        started = time.monotonic()
+        assert not launcher.bring_up([
+            ('broken', [sys.executable, '-c', 'raise SystemExit(3)'],
+             InGraph('broken', services=('/broken/start',))),
+            ('never', [sys.executable, '-c', 'print(1)'], None)])
+        assert time.monotonic() - started < 20.0  # the exit ends the wait, not a time-out
+        assert [name for name, _ in launcher.children] == ['broken']
+        assert any('broken exited unexpectedly with status 3' in line
+                   for line in launcher.lines)
 
 
 def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_path, capsys):

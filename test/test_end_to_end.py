@@ -19,15 +19,20 @@ import time
 import can
 from conftest import spin_in_thread
 from diagnostic_msgs.msg import DiagnosticStatus
+from flexure_ctrl.cli.launcher import Launcher
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.alignment import align
 from flexure_ctrl.core.characterisation import measured_design, summarise
 from flexure_ctrl.core.characterisation import write_design_yaml
 from flexure_ctrl.core.design import find_config_file, load_design
 from flexure_ctrl.core.run import RunMessage, RunState
+from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic, COMMAND_TOPIC,
+                                    DEMAND_TOPIC, END_TOPIC, RUN_TOPIC, SETPOINTS_TOPIC,
+                                    TRAJECTORY_TOPIC)
 from flexure_ctrl.nodes.run_messages import pairs_of
 from geometry_msgs.msg import PointStamped
 from helpers import free_port
+from lifecycle_msgs.srv import GetState
 import numpy as np
 import pytest
 import rclpy
@@ -55,9 +60,9 @@ def stamp_s(message) -> float:
 
 def graph_connected(node) -> bool:
     """Return whether both loops listen to the setpoints and the solver to the commands."""
-    return (node.count_subscribers('/flexure/actuator_setpoints') >= 2
-            and node.count_publishers('/flexure/actuator_setpoints') >= 1
-            and node.count_subscribers('/flexure/command') >= 1)
+    return (node.count_subscribers(SETPOINTS_TOPIC) >= 2
+            and node.count_publishers(SETPOINTS_TOPIC) >= 1
+            and node.count_subscribers(COMMAND_TOPIC) >= 1)
 
 
 class Rig:
@@ -70,10 +75,9 @@ class Rig:
                    '--can-port', str(self.can_port), '--tracker-port', str(free_port()),
                    '--ros-arg', f'trajectory_generator:lead_in_s:={LEAD_IN_S}',
                    '--ros-arg', 'trajectory_generator:lead_out_s:=0.5']
-        self.lines = []
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE,
-                                        stderr=subprocess.STDOUT, text=True, env=os.environ)
-        threading.Thread(target=self._pump, daemon=True).start()
+        # The tests' rig starts `up` with the launcher that `up` itself uses.
+        self.launcher = Launcher('test', quiet=True)
+        self.process, _ = self.launcher.start('up', command)
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('end_to_end_probe', context=self.context)
@@ -95,9 +99,10 @@ class Rig:
             store.append((time.time(), message))
         return keep
 
-    def _pump(self):
-        for line in self.process.stdout:
-            self.lines.append(line.rstrip('\n'))
+    @property
+    def lines(self):
+        """What `up` and its nodes printed (each line prefixed by its process's name)."""
+        return [line[len('[up] '):] for line in self.launcher.lines if line.startswith('[up] ')]
 
     def spin_until(self, condition, timeout_s):
         """Poll ``condition`` (the executor runs in its own thread) until a deadline."""
@@ -133,6 +138,7 @@ class Rig:
             except subprocess.TimeoutExpired:
                 self.process.kill()  # its children get SIGTERM from the kernel
                 self.process.wait()
+        self.launcher.stop_all()
         if self.context.ok():
             self.executor.shutdown()
             self.node.destroy_node()
@@ -140,12 +146,20 @@ class Rig:
             self._spinner.join(timeout=5.0)
 
     def wait_for_actuators(self):
-        # up says so once both drives are enabled and both loops hear the solver.
-        def all_up():
-            return any('[up] all processes up' in line for line in self.lines)
+        # Both loops active (drives commissioned and enabled), asked of their lifecycle.
+        for actuator in ACTUATOR_NAMES:
+            client = self.node.create_client(GetState, f'/{actuator}/get_state')
 
-        assert self.spin_until(all_up, 90.0), 'actuator loops never came up:\n' \
-            + '\n'.join(self.lines[-40:])
+            def active():
+                if not client.service_is_ready():
+                    return False
+                future = client.call_async(GetState.Request())
+                self.spin_until(future.done, 5.0)
+                return future.done() and future.result().current_state.label == 'active'
+
+            assert self.spin_until(active, 90.0), f'{actuator} never became active:\n' \
+                + '\n'.join(self.lines[-40:])
+            self.node.destroy_client(client)
         assert self.spin_until(lambda: graph_connected(self.node), 30.0), 'graph not connected'
 
     def problems(self) -> str:
@@ -174,15 +188,15 @@ def rig_factory():
 
 def run_the_path_once(rig_factory, **rig_arguments):
     """Start a rig, run the path once; return it and the demand and tracker messages."""
-    rig = rig_factory([('/flexure/tracker/end', PointStamped),
-                       ('/flexure/demand', PointStamped)], **rig_arguments)
+    rig = rig_factory([(END_TOPIC, PointStamped),
+                       (DEMAND_TOPIC, PointStamped)], **rig_arguments)
     rig.wait_for_actuators()
     started_s = time.time()
     assert rig.call('/trajectory_generator/start').success
     run_s = LEAD_IN_S + PERIOD_S + 0.5
     rig.spin_until(lambda: time.time() > started_s + run_s + 0.5, run_s + 10.0)
-    demand = [m for _, m in rig.received['/flexure/demand']]
-    tracked = [m for _, m in rig.received['/flexure/tracker/end']]
+    demand = [m for _, m in rig.received[DEMAND_TOPIC]]
+    tracked = [m for _, m in rig.received[END_TOPIC]]
     return rig, demand, tracked
 
 
@@ -260,18 +274,18 @@ def test_a_measured_design_tracks_better_than_the_nominal_one(rig_factory, tmp_p
     assert np.all(rms_mm['measured'] < 0.5 * rms_mm['nominal'])
 
 
-STATE_TOPICS = [(f'/flexure/{actuator}/state', JointState)
+STATE_TOPICS = [(actuator_state_topic(actuator), JointState)
                 for actuator in ('actuator_1', 'actuator_2')]
 
 
 def run_words(rig):
     """Return the run owner's words the probe has heard, as (arrival s, RunMessage)."""
     return [(t, RunMessage.from_pairs(pairs_of(m)))
-            for t, m in rig.received['/flexure/run']]
+            for t, m in rig.received[RUN_TOPIC]]
 
 
 def states_after(rig, actuator, after_s):
-    return [(stamp_s(m), m.velocity[0]) for _, m in rig.received[f'/flexure/{actuator}/state']
+    return [(stamp_s(m), m.velocity[0]) for _, m in rig.received[actuator_state_topic(actuator)]
             if stamp_s(m) > after_s]
 
 
@@ -307,7 +321,7 @@ def assert_both_move_then_stop_by(rig, event_s, allowance_s, hold_s=1.0):
 
 
 def test_a_hung_run_owner_stops_both_actuators_within_the_watchdog_time(rig_factory):
-    rig = rig_factory(STATE_TOPICS + [('/flexure/run', DiagnosticStatus)])
+    rig = rig_factory(STATE_TOPICS + [(RUN_TOPIC, DiagnosticStatus)])
     rig.wait_for_actuators()
     start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
     owner_pid = rig.pid_of('trajectory_generator')
@@ -332,7 +346,7 @@ def test_a_hung_run_owner_stops_both_actuators_within_the_watchdog_time(rig_fact
 
 
 def test_a_fault_on_one_drive_stops_both(rig_factory):
-    rig = rig_factory(STATE_TOPICS + [('/flexure/run', DiagnosticStatus)])
+    rig = rig_factory(STATE_TOPICS + [(RUN_TOPIC, DiagnosticStatus)])
     rig.wait_for_actuators()
     start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
     # Drive 2 reports a fault (an EMCY on its COB-ID, as the drive would send it).
@@ -351,7 +365,7 @@ def test_a_fault_on_one_drive_stops_both(rig_factory):
 
 
 def test_the_stop_service_leaves_both_actuators_holding(rig_factory):
-    rig = rig_factory(STATE_TOPICS + [('/flexure/run', DiagnosticStatus)])
+    rig = rig_factory(STATE_TOPICS + [(RUN_TOPIC, DiagnosticStatus)])
     rig.wait_for_actuators()
     start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
     assert rig.call('/trajectory_generator/stop').success
@@ -364,7 +378,7 @@ def test_the_stop_service_leaves_both_actuators_holding(rig_factory):
 
 
 def test_autostart_starts_only_once_both_loops_run(rig_factory):
-    rig = rig_factory([('/flexure/run', DiagnosticStatus)], extra_arguments=('--autostart',))
+    rig = rig_factory([(RUN_TOPIC, DiagnosticStatus)], extra_arguments=('--autostart',))
     assert rig.spin_until(lambda: any(w.state is RunState.RUNNING for _, w in run_words(rig)),
                           90.0), rig.problems()
 
@@ -426,13 +440,13 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
         # actuators' 500 Hz states, the plan and the run's words in it.
         with Reader(Path(row['bag'])) as bag:
             counts = {c.topic: c.msgcount for c in bag.connections}
-            assert counts['/flexure/tracker/end'] >= row['points']
+            assert counts[END_TOPIC] >= row['points']
             for actuator in ('actuator_1', 'actuator_2'):
-                assert counts[f'/flexure/{actuator}/state'] > 0.8 * 500 * 14, counts
+                assert counts[actuator_state_topic(actuator)] > 0.8 * 500 * 14, counts
             # The run's plan; the one before it too, latched, from the second run on.
-            assert counts['/flexure/actuator_trajectory'] in (1, 2), counts
-            assert counts['/flexure/run'] > 0.8 * 14 / 0.05, counts
-            states = [c for c in bag.connections if c.topic == '/flexure/actuator_2/state']
+            assert counts[TRAJECTORY_TOPIC] in (1, 2), counts
+            assert counts[RUN_TOPIC] > 0.8 * 14 / 0.05, counts
+            states = [c for c in bag.connections if c.topic == actuator_state_topic('actuator_2')]
             connection, _, raw = next(bag.messages(connections=states))
             state = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(raw, connection.msgtype)
             assert list(state.name) == ['actuator_2'] and abs(state.position[0]) < 0.045

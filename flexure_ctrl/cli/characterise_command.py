@@ -34,10 +34,9 @@ from flexure_ctrl.core.characterisation import (
     pf_model_table, plot_characterisation, PointsCsv, RunAborted, SettleCriteria, summarise,
     SweepPlan, SweepRunner, TARGET_NAMES, TargetLayout, write_design_yaml)
 from flexure_ctrl.core.design import find_config_file, find_design_file, load_design
+from flexure_ctrl.interface import ACTUATOR_NAMES
 import numpy as np
 import yaml
-
-READY_TIMEOUT_S = 60.0
 
 
 def add_parser(commands) -> None:
@@ -52,8 +51,8 @@ def add_parser(commands) -> None:
     parser.add_argument('--design', default='cfa',
                         help='design whose stroke limit, geometry and branch apply, and whose '
                              'table is the nominal one (default: %(default)s)')
-    parser.add_argument('--actuator', default='actuator_1',
-                        choices=('actuator_1', 'actuator_2', '1', '2'),
+    parser.add_argument('--actuator', default=ACTUATOR_NAMES[0],
+                        choices=(*ACTUATOR_NAMES, '1', '2'),
                         help='actuator (joint) to sweep (default: %(default)s)')
     parser.add_argument('--from-mm', type=float, default=-45.0, help='lowest extension (mm)')
     parser.add_argument('--to-mm', type=float, default=45.0, help='highest extension (mm)')
@@ -115,12 +114,6 @@ def _offset(text, default):
     return along, left
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(('127.0.0.1', 0))
-        return probe.getsockname()[1]
-
-
 def _sim_override(arguments, targets, offsets, folder: Path) -> Path:
     """Write the simulator knobs: the user's file, with the output-body targets on."""
     document = {}
@@ -135,55 +128,34 @@ def _sim_override(arguments, targets, offsets, folder: Path) -> Path:
     return path
 
 
-def start_simulated_rig(group, design_file: Path, sim_config: Path, can_port: int,
+def start_simulated_rig(launcher, design_file: Path, sim_config: Path, can_port: int,
                         tracker_port: int, folder: Path,
                         plant_file: Optional[Path] = None) -> bool:
     """
-    Start the simulator, tracker bridge and both actuator loops in ``group``.
+    Start the simulator, tracker bridge and both actuator loops with ``launcher``.
 
     Not the inverse solver nor the trajectory generator: the characterisation commands
     the actuators itself. Returns whether all came up.
     """
-    from flexure_ctrl.cli.up_command import _node_command, LIFECYCLE_ACTIVE
+    from flexure_ctrl.cli.launcher import LOOPS, node_launches, sim_launch, TRACKER_BRIDGE
 
     overrides = folder / 'overrides.yaml'
+    loop_port = {'ros__parameters': {'can': {'port': can_port}}}
     overrides.write_text(yaml.safe_dump({
-        '/actuator_1': {'ros__parameters': {'can': {'port': can_port}}},
-        '/actuator_2': {'ros__parameters': {'can': {'port': can_port}}},
-        '/tracker_bridge': {'ros__parameters': {'port': tracker_port}}}))
+        **{f'/{actuator}': loop_port for actuator in ACTUATOR_NAMES},
+        f'/{TRACKER_BRIDGE.name}': {'ros__parameters': {'port': tracker_port}}}))
     rig_config = find_config_file('sim.yaml').resolve()
-    launches = [('sim', [sys.executable, '-m', 'flexure_ctrl.cli.main', 'sim', '--design',
-                         str(plant_file or design_file), '--sim-config', str(sim_config),
-                         '--can-port',
-                         str(can_port), '--tracker-port', str(tracker_port)], 'sim: ready')]
-    nodes = (('tracker_bridge', 'tracker_bridge', [], 'reading the tracker at'),
-             ('actuator_1', 'actuator_loop',
-              ['-r', '__node:=actuator_1', '-p', 'actuator:=actuator_1'], LIFECYCLE_ACTIVE),
-             ('actuator_2', 'actuator_loop',
-              ['-r', '__node:=actuator_2', '-p', 'actuator:=actuator_2'], LIFECYCLE_ACTIVE))
-    for name, module, node_arguments, marker in nodes:
-        launches.append((name, _node_command(module, node_arguments + [
-            '--params-file', str(design_file), '--params-file', str(rig_config),
-            '--params-file', str(overrides)]), marker))
-    for name, command, marker in launches:
-        _, ready = group.start(name, command, ready_marker=marker)
-        if not ready.wait(READY_TIMEOUT_S) or group.first_exit.is_set():
-            group.say('characterise', f'{name} did not come up')
-            return False
+    launches = [sim_launch(plant_file or design_file, can_port, tracker_port, sim_config)]
+    launches += node_launches((TRACKER_BRIDGE, *LOOPS), (design_file, rig_config, overrides))
+    if not launcher.bring_up(launches):
+        launcher.say('characterise', 'the simulated rig did not come up')
+        return False
     return True
 
 
-class _NullStream:
-    def write(self, text):
-        return len(text)
-
-    def flush(self):
-        pass
-
-
 def run(arguments: argparse.Namespace) -> int:
-    actuator = arguments.actuator if arguments.actuator.startswith('actuator') \
-        else f'actuator_{arguments.actuator}'
+    actuator = arguments.actuator if arguments.actuator in ACTUATOR_NAMES \
+        else ACTUATOR_NAMES[int(arguments.actuator) - 1]
     design_file = find_design_file(arguments.design).resolve()
     design = load_design(design_file)
     plant_file = (find_design_file(arguments.plant_design).resolve()
@@ -199,7 +171,7 @@ def run(arguments: argparse.Namespace) -> int:
     offsets = (_offset(arguments.target_a_mm, DEFAULT_OFFSET_A_M),
                _offset(arguments.target_b_mm, DEFAULT_OFFSET_B_M))
     layout = TargetLayout(TARGET_NAMES[actuator], *offsets)
-    joint1_layout = TargetLayout(TARGET_NAMES['actuator_1'], *offsets)
+    joint1_layout = TargetLayout(TARGET_NAMES[ACTUATOR_NAMES[0]], *offsets)
     name = arguments.name or f'{design.name}_measured_{actuator}'
     out = arguments.out
     out.mkdir(parents=True, exist_ok=True)
@@ -215,14 +187,14 @@ def run(arguments: argparse.Namespace) -> int:
     sim_config = None
     try:
         if arguments.sim:
-            from flexure_ctrl.cli.up_command import ProcessGroup
+            from flexure_ctrl.cli.launcher import free_port, Launcher
 
-            group = ProcessGroup(out=_NullStream() if arguments.quiet else None)
+            group = Launcher('characterise', quiet=arguments.quiet)
             sim_config = _sim_override(arguments, runner.target_names, offsets,
                                        Path(folder.name))
             if not start_simulated_rig(group, design_file, sim_config,
-                                       arguments.can_port or _free_port(),
-                                       arguments.tracker_port or _free_port(),
+                                       arguments.can_port or free_port(),
+                                       arguments.tracker_port or free_port(),
                                        Path(folder.name), plant_file):
                 raise CharacterisationError('the simulated rig did not come up')
         node, error = _run_node(runner, actuator, design, arguments)
@@ -335,7 +307,7 @@ def true_joint_table(arm, actuator: str, l0_m, other_m: float) -> np.ndarray:
     """Return the simulator's true ``(x_f, y_f, theta_f)`` rows of one joint at ``l0_m``."""
     rows = []
     for l0 in np.asarray(l0_m, dtype=float):
-        pair = (l0, other_m) if actuator == 'actuator_1' else (other_m, l0)
+        pair = (l0, other_m) if actuator == ACTUATOR_NAMES[0] else (other_m, l0)
         poses = arm.true_joint_poses_at(*pair)
-        rows.append(poses[:3] if actuator == 'actuator_1' else poses[3:])
+        rows.append(poses[:3] if actuator == ACTUATOR_NAMES[0] else poses[3:])
     return np.asarray(rows)

@@ -21,6 +21,26 @@ from flexure_ctrl.core.errors import CorrectionError
 from flexure_ctrl.core.runs import load_last_run
 
 
+def add_learning_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the learning options that ``correct`` and ``demo`` share (gains, Q, spikes)."""
+    parser.add_argument('--gain', type=float, default=1.0,
+                        help='learning gain gamma of the first correction, in (0, 2]; 1 is '
+                             "the paper's Eq. 8 (default: %(default)s)")
+    parser.add_argument('--later-gain', type=float, default=0.5,
+                        help='learning gain of the later corrections, in (0, 2]: below 1 an '
+                             'unrepeatable error of one run is not mirrored into the next '
+                             '(default: %(default)s)')
+    parser.add_argument('--cutoff-hz', type=float, default=DEFAULT_CUTOFF_HZ, metavar='HZ',
+                        help='cutoff of the zero-phase low-pass Q applied to the error; 0: '
+                             'no filter (default: %(default)s)')
+    parser.add_argument('--spike-threshold', type=float, default=DEFAULT_SPIKE_THRESHOLD,
+                        metavar='SIGMAS',
+                        help='leave out of learning (and of the gain decision) the sharp '
+                             'errors of a run that the run before did not have, this many '
+                             'robust standard deviations out; 0 learns everything '
+                             '(default: %(default)s)')
+
+
 def add_parser(commands) -> None:
     parser = commands.add_parser(
         'correct', help="write the next run's command path from recorded runs (Eq. 8)",
@@ -34,20 +54,7 @@ def add_parser(commands) -> None:
                         help='bag folders or .mcap files, in the order they were run')
     parser.add_argument('--out', type=Path, default=None, metavar='CSV',
                         help='command path to write (default: <last BAG>/next_command.csv)')
-    parser.add_argument('--gain', type=float, default=1.0,
-                        help='learning gain gamma of the first correction, in (0, 2] '
-                             '(default: %(default)s)')
-    parser.add_argument('--later-gain', type=float, default=0.5,
-                        help='learning gain of the later corrections, in (0, 2] '
-                             '(default: %(default)s)')
-    parser.add_argument('--cutoff-hz', type=float, default=DEFAULT_CUTOFF_HZ, metavar='HZ',
-                        help='cutoff of the zero-phase low-pass Q; 0: no filter '
-                             '(default: %(default)s)')
-    parser.add_argument('--spike-threshold', type=float, default=DEFAULT_SPIKE_THRESHOLD,
-                        metavar='SIGMAS',
-                        help='with several bags, leave out the sharp errors of a run that '
-                             'the run before did not have, this many robust standard '
-                             'deviations out; 0 learns everything (default: %(default)s)')
+    add_learning_arguments(parser)
     parser.add_argument('--bridge-max-s', type=float, default=DEFAULT_BRIDGE_MAX_S,
                         metavar='S', help='longest tracker gap bridged by interpolation; '
                                           'longer gaps are not learned from '

@@ -1,7 +1,8 @@
 """
 ``flexure-ctrl demo``: the paper's path on the simulated rig, learned run after run.
 
-Starts ``flexure-ctrl up --sim`` (the simulator and every node as processes), then for
+Starts what ``flexure-ctrl up --sim`` starts (the simulator and every node as processes,
+with the same launcher), then for
 each iteration: records a run of the path to a bag (the ``recorder`` node), computes the
 run's error against the demand (Eq. 7) and the next command path
 (``c_{k+1} = c_k + gamma Q(p - e_k)``; the first is the paper's Eq. 8), and hands it to
@@ -14,30 +15,29 @@ import argparse
 import datetime
 import os
 from pathlib import Path
-import signal
-import subprocess
 import sys
+import tempfile
 import threading
 import time
-from typing import List, Optional
+from typing import Optional
 
-from flexure_ctrl.cli import report_command
-from flexure_ctrl.cli.up_command import check_period
-from flexure_ctrl.core.correction import (DEFAULT_CUTOFF_HZ, DEFAULT_SPIKE_THRESHOLD,
-                                          IterativeCorrector, path_errors)
+from flexure_ctrl.cli import correct_command, report_command, up_command
+from flexure_ctrl.cli.launcher import InGraph, Launcher, node_command
+from flexure_ctrl.core.correction import IterativeCorrector, path_errors
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.repeatability import repeatability_floor
 from flexure_ctrl.core.run import RunMessage, RunState
-from flexure_ctrl.core.runs import load_last_run, RUN_TOPICS
+from flexure_ctrl.core.runs import load_last_run
+from flexure_ctrl.interface import (COMMAND_TOPIC, CORRECTION_TOPICS, RECORDER,
+                                    RECORDER_INTAKE, RUN_STATUS_NAME, RUN_TOPIC,
+                                    SETPOINTS_TOPIC, START_SERVICE, TRAJECTORY_GENERATOR)
 
 LEAD_IN_S = 2.5
 LEAD_OUT_S = 1.0
-UP_TIMEOUT_S = 120.0
 RECORDER_TIMEOUT_S = 60.0
-# Topics the recorder must have subscribed to before a run may start: what path
-# correction needs. It records every run topic (the recorder's default), the actuators'
-# states included.
-RECORDED_BEFORE_START = RUN_TOPICS
+# The recorder is up once it has subscribed to what path correction needs. It records
+# every run topic (its default), the actuators' states included.
+RECORDER_READY = InGraph(RECORDER_INTAKE, subscriptions=CORRECTION_TOPICS)
 
 
 class DemoError(FlexureCtrlError, RuntimeError):
@@ -59,22 +59,7 @@ def add_parser(commands) -> None:
                              '(default: %(default)s)')
     parser.add_argument('--period', type=float, default=14.0, metavar='S',
                         help='period of the path in s (default: %(default)s, as in the paper)')
-    parser.add_argument('--gain', type=float, default=1.0,
-                        help='learning gain gamma of the first correction, in (0, 2]; 1 is '
-                             "the paper's Eq. 8 (default: %(default)s)")
-    parser.add_argument('--later-gain', type=float, default=0.5,
-                        help='learning gain of the later corrections, in (0, 2]: below 1 an '
-                             'unrepeatable error of one run is not mirrored into the next '
-                             '(default: %(default)s)')
-    parser.add_argument('--cutoff-hz', type=float, default=DEFAULT_CUTOFF_HZ, metavar='HZ',
-                        help='cutoff of the zero-phase low-pass Q applied to the error '
-                             '(default: %(default)s)')
-    parser.add_argument('--spike-threshold', type=float, default=DEFAULT_SPIKE_THRESHOLD,
-                        metavar='SIGMAS',
-                        help='leave out of learning (and of the gain decision) the sharp '
-                             'errors of a run that the run before did not have, this many '
-                             'robust standard deviations out; 0 learns everything '
-                             '(default: %(default)s)')
+    correct_command.add_learning_arguments(parser)
     parser.add_argument('--repeat-last', type=int, default=1, metavar='N',
                         help='after the last correction, run its command path once more (1) '
                              'to measure the repeatability floor, the error that does not '
@@ -96,63 +81,12 @@ def add_parser(commands) -> None:
     parser.set_defaults(run=run)
 
 
-class _Process:
-    """A child process whose output is read line by line (and echoed unless quiet)."""
-
-    def __init__(self, command: List[str], quiet: bool, prefix: str = '') -> None:
-        self.lines: List[str] = []
-        self._changed = threading.Condition()
-        self.popen = subprocess.Popen(command, stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True, bufsize=1)
-        self._quiet = quiet
-        self._prefix = prefix
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        for line in self.popen.stdout:
-            if not self._quiet and 'incomplete message' not in line:
-                sys.stdout.write(self._prefix + line)
-            with self._changed:
-                self.lines.append(line.rstrip('\n'))
-                self._changed.notify_all()
-        with self._changed:
-            self._changed.notify_all()
-
-    def wait_for_line(self, predicate, timeout_s: float, start: int = 0) -> Optional[str]:
-        """Return the first line from index ``start`` on that satisfies ``predicate``."""
-        deadline = time.monotonic() + timeout_s
-        with self._changed:
-            while True:
-                for line in self.lines[start:]:
-                    if predicate(line):
-                        return line
-                start = len(self.lines)
-                remaining = deadline - time.monotonic()
-                if remaining <= 0.0 or (self.popen.poll() is not None
-                                        and not self._reader.is_alive()):
-                    return None
-                self._changed.wait(min(remaining, 0.5))
-
-    def interrupt(self, timeout_s: float) -> Optional[int]:
-        """Ctrl-C, then wait; kill if it does not end. Idempotent."""
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGINT)
-        try:
-            return self.popen.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            self.popen.kill()
-            self.popen.wait()
-            return None
-
-
 class _Operator:
     """A node in this process that starts runs and sets the correction file."""
 
     def __init__(self) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticStatus
-        from flexure_ctrl.nodes.common import RUN_STATUS_NAME, RUN_TOPIC
         from flexure_ctrl.nodes.run_messages import pairs_of
         from rclpy.executors import SingleThreadedExecutor
 
@@ -186,9 +120,9 @@ class _Operator:
         """Wait until the loops and the solver are wired (discovery lags the start)."""
         node = self.node
         deadline = time.monotonic() + timeout_s
-        while not (node.count_subscribers('/flexure/actuator_setpoints') >= 2
-                   and node.count_publishers('/flexure/actuator_setpoints') >= 1
-                   and node.count_subscribers('/flexure/command') >= 1):
+        while not (node.count_subscribers(SETPOINTS_TOPIC) >= 2
+                   and node.count_publishers(SETPOINTS_TOPIC) >= 1
+                   and node.count_subscribers(COMMAND_TOPIC) >= 1):
             if time.monotonic() > deadline:
                 raise DemoError('the nodes did not connect within '
                                 f'{timeout_s:.0f} s (ROS discovery)')
@@ -214,10 +148,9 @@ class _Operator:
         from std_srvs.srv import Trigger
         with self._run_changed:
             self._last_stamp_ns = self.run.trajectory_stamp_ns
-        response = self._call(Trigger, '/trajectory_generator/start', Trigger.Request(),
-                              timeout_s=30.0)
+        response = self._call(Trigger, START_SERVICE, Trigger.Request(), timeout_s=30.0)
         if not response.success:
-            raise DemoError(f'trajectory_generator/start: {response.message}')
+            raise DemoError(f'{START_SERVICE}: {response.message}')
 
     def wait_for_run_end(self, timeout_s: float) -> Optional[RunMessage]:
         """Return the run owner's word once the run has ended; None on time-out."""
@@ -238,10 +171,11 @@ class _Operator:
         request = SetParameters.Request(parameters=[Parameter(
             name='correction_file', value=ParameterValue(
                 type=ParameterType.PARAMETER_STRING, string_value=path))])
-        response = self._call(SetParameters, '/trajectory_generator/set_parameters', request)
+        response = self._call(SetParameters, f'/{TRAJECTORY_GENERATOR}/set_parameters',
+                              request)
         result = response.results[0]
         if not result.successful:
-            raise DemoError(f'trajectory_generator refused the command path {path}: '
+            raise DemoError(f'{TRAJECTORY_GENERATOR} refused the command path {path}: '
                             f'{result.reason}')
 
     def close(self) -> None:
@@ -274,37 +208,34 @@ class _Progress:
         print(text, flush=True)
 
 
-def _up_command(arguments: argparse.Namespace) -> List[str]:
-    command = [sys.executable, '-m', 'flexure_ctrl.cli.main', 'up', '--sim',
-               '--design', arguments.design, '--period', str(arguments.period),
-               '--ros-arg', f'trajectory_generator:lead_in_s:={LEAD_IN_S}',
-               '--ros-arg', f'trajectory_generator:lead_out_s:={LEAD_OUT_S}']
+def _up_arguments(arguments: argparse.Namespace) -> argparse.Namespace:
+    """Parse, with up's own parser, what ``flexure-ctrl up --sim`` gets in the demo."""
+    from flexure_ctrl.cli.main import build_parser  # main imports this module
+    argv = ['up', '--sim', '--design', arguments.design, '--period', str(arguments.period),
+            '--ros-arg', f'{TRAJECTORY_GENERATOR}:lead_in_s:={LEAD_IN_S}',
+            '--ros-arg', f'{TRAJECTORY_GENERATOR}:lead_out_s:={LEAD_OUT_S}']
     if arguments.sim_config:
-        command += ['--sim-config', str(arguments.sim_config)]
+        argv += ['--sim-config', str(arguments.sim_config)]
     for option, port in (('--can-port', arguments.can_port),
                          ('--tracker-port', arguments.tracker_port)):
         if port:
-            command += [option, str(port)]
-    return command
+            argv += [option, str(port)]
+    return build_parser().parse_args(argv)
 
 
-def _start_recorder(bag_dir: Path, bag_name: str, quiet: bool) -> _Process:
-    recorder = _Process([sys.executable, '-m', 'flexure_ctrl.nodes.recorder', '--ros-args',
-                         '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}'],
-                        quiet, prefix='[recorder] ')
-    for topic in RECORDED_BEFORE_START:
-        if recorder.wait_for_line(lambda line, t=topic: f'recording {t} [' in line,
-                                  RECORDER_TIMEOUT_S) is None:
-            recorder.interrupt(10.0)
-            raise DemoError(f'the recorder did not subscribe to {topic}:\n'
-                            + '\n'.join(recorder.lines[-10:]))
-    return recorder
+def _start_recorder(launcher: Launcher, bag_dir: Path, bag_name: str) -> None:
+    _, up = launcher.start(RECORDER, node_command(RECORDER, [
+        '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}']), RECORDER_READY)
+    if not up.wait(RECORDER_TIMEOUT_S) or launcher.first_exit.is_set():
+        launcher.stop(RECORDER)
+        raise DemoError(f'the recorder did not come up ({RECORDER_READY.describe()}):\n'
+                        + '\n'.join(launcher.lines[-10:]))
 
 
-def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
+def _record_run(launcher: Launcher, operator: _Operator, bag_dir: Path, bag_name: str,
                 arguments: argparse.Namespace, progress: _Progress, index: int) -> Path:
     """Record one run of the path; return its bag folder."""
-    recorder = _start_recorder(bag_dir, bag_name, arguments.quiet)
+    _start_recorder(launcher, bag_dir, bag_name)
     try:
         operator.start_run()
         run_s = LEAD_IN_S + arguments.period + LEAD_OUT_S
@@ -312,23 +243,23 @@ def _record_run(up: _Process, operator: _Operator, bag_dir: Path, bag_name: str,
         while (ended := operator.wait_for_run_end(0.5)) is None:
             elapsed_s = time.monotonic() - started
             progress.run(index, elapsed_s, run_s)
-            if up.popen.poll() is not None:
-                raise DemoError('flexure-ctrl up ended during the run:\n'
-                                + '\n'.join(up.lines[-20:]))
+            if launcher.first_exit.is_set():
+                raise DemoError('a process of the rig ended during the run:\n'
+                                + '\n'.join(launcher.lines[-20:]))
             if elapsed_s > run_s + 30.0:
                 raise DemoError(f'the run did not finish within {run_s + 30.0:.0f} s')
         if ended.state is not RunState.FINISHED:
             raise DemoError(f'the run {ended.state.value}: {ended.reason}')
         progress.run(index, run_s, run_s)
     finally:
-        if recorder.interrupt(RECORDER_TIMEOUT_S) != 0:
+        if launcher.stop(RECORDER) != 0:
             progress.line(f'[demo] the recorder of {bag_name} did not end cleanly:\n'
-                          + '\n'.join(recorder.lines[-10:]))
+                          + '\n'.join(launcher.lines[-10:]))
     return bag_dir / bag_name
 
 
 def run(arguments: argparse.Namespace) -> int:
-    check_period(arguments.period)  # passed on to flexure-ctrl up: refused here, before it
+    up_command.check_period(arguments.period)  # refused here, before the rig starts
     if arguments.iterations < 0:
         raise DemoError('--iterations must be 0 or more')
     if arguments.repeat_last not in (0, 1):
@@ -341,21 +272,24 @@ def run(arguments: argparse.Namespace) -> int:
     corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
                                    cutoff_hz=arguments.cutoff_hz,
                                    spike_threshold=arguments.spike_threshold or None)
+    folder = tempfile.TemporaryDirectory(prefix='flexure_ctrl_demo_')
+    launches, niceness_of = up_command.plan_launches(_up_arguments(arguments),
+                                                     Path(folder.name))
     out = arguments.out
     out.mkdir(parents=True, exist_ok=True)
-    up = _Process(_up_command(arguments), arguments.quiet)
+    launcher = Launcher('demo', quiet=arguments.quiet)
     operator = None
     progress = _Progress(arguments.iterations + 1 + arguments.repeat_last)
     rows = []
     floor = None
     try:
-        if up.wait_for_line(lambda line: 'all processes up' in line, UP_TIMEOUT_S) is None:
+        if not launcher.bring_up(launches, niceness_of):
             raise DemoError('the simulated rig and nodes did not come up:\n'
-                            + '\n'.join(up.lines[-20:]))
+                            + '\n'.join(launcher.lines[-20:]))
         operator = _Operator()
         operator.wait_until_connected(60.0)
         for index in range(arguments.iterations + 1):
-            bag = _record_run(up, operator, arguments.bag_dir,
+            bag = _record_run(launcher, operator, arguments.bag_dir,
                               f'demo_{arguments.design}_{stamp}_iteration_{index}', arguments,
                               progress, index)
             errors = path_errors(load_last_run(bag))
@@ -382,7 +316,7 @@ def run(arguments: argparse.Namespace) -> int:
         if arguments.repeat_last:
             # The command of the last run, run again: what differs is what does not repeat.
             index = len(rows)
-            bag = _record_run(up, operator, arguments.bag_dir,
+            bag = _record_run(launcher, operator, arguments.bag_dir,
                               f'demo_{arguments.design}_{stamp}_repeat', arguments, progress,
                               index)
             floor = repeatability_floor(corrector.iterations[-1].errors,
@@ -396,7 +330,8 @@ def run(arguments: argparse.Namespace) -> int:
     finally:
         if operator is not None:
             operator.close()
-        up.interrupt(60.0)
+        launcher.stop_all()
+        folder.cleanup()
     report_command.add_reductions(rows)
     summary = {'design': arguments.design, 'period_s': arguments.period,
                'iterations': rows,

@@ -1,20 +1,23 @@
 """
-Drive managed (lifecycle) nodes to active from a launcher's process.
+The launcher's view of the ROS graph: is a node up, and bring a managed node to active.
 
-``flexure-ctrl up`` and ``characterise`` start the actuator loops unconfigured and bring
-each to active with its ``~/change_state`` service (lifecycle_msgs): configure (bus and
-commissioning), then activate (drive enabled, loop running). A node is ready when its
-activate transition succeeded: a signal from the node, not a line of its log.
+The launcher starts the actuator loops unconfigured and brings each to active with its
+``~/change_state`` service (lifecycle_msgs): configure (bus and commissioning), then
+activate (drive enabled, loop running). Another node is up once the graph shows it with
+the endpoints it creates when it is set up. Both are signals from the node, not lines of
+its log.
 """
 
 import threading
-from typing import Optional
+import time
+from typing import Callable, Optional
 
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import NodeNameNonExistentError
 from rclpy.signals import SignalHandlerOptions
 
 # Longest wait (s) for a node's change_state service to appear after its start.
@@ -26,8 +29,8 @@ TRANSITIONS = ((Transition.TRANSITION_CONFIGURE, 'configure'),
                (Transition.TRANSITION_ACTIVATE, 'activate'))
 
 
-class LifecycleClient:
-    """One rclpy node in the launcher that calls the managed nodes' transitions."""
+class RosProbe:
+    """One rclpy node in the launcher that watches the graph and calls transitions."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -41,21 +44,58 @@ class LifecycleClient:
         self._executor = SingleThreadedExecutor(context=self._context)
         self._executor.add_node(self._node)
 
-    def bring_up(self, node_name: str, cancelled: threading.Event) -> str:
-        """
-        Configure and activate ``/<node_name>``; return '' when active, else why not.
-
-        :param cancelled: set when the launcher stops: give up at once.
-        """
+    def _ensure_started(self) -> None:
         with self._lock:
             if self._context is None:
                 self._start()
+
+    def wait_in_graph(self, ready, gone: Callable[[], bool], timeout_s: float) -> str:
+        """
+        Wait until ``ready.node`` has all of ``ready``'s endpoints; '' then, else why not.
+
+        :param ready: a :class:`flexure_ctrl.cli.launcher.InGraph`.
+        :param gone: true once waiting is pointless (the process ended, the launcher stops).
+        :param timeout_s: longest wait (s).
+        """
+        from flexure_ctrl.cli.launcher import PROBE_PERIOD_S
+        self._ensure_started()
+        deadline = time.monotonic() + timeout_s
+        queries = ((ready.publishers, self._node.get_publisher_names_and_types_by_node),
+                   (ready.subscriptions, self._node.get_subscriber_names_and_types_by_node),
+                   (ready.services, self._node.get_service_names_and_types_by_node))
+        while True:
+            missing = []
+            for wanted, query in queries:
+                if not wanted:
+                    continue
+                try:
+                    present = {name for name, _ in query(ready.node, '/')}
+                except NodeNameNonExistentError:
+                    present = set()
+                missing += [name for name in wanted if name not in present]
+            if not missing:
+                return ''
+            if gone():
+                return 'stopped'
+            if time.monotonic() > deadline:
+                return (f'{ready.node} did not show {", ".join(missing)} in the ROS graph '
+                        f'within {timeout_s:.0f} s')
+            time.sleep(PROBE_PERIOD_S)
+
+    def bring_up(self, node_name: str, gone: Callable[[], bool]) -> str:
+        """
+        Configure and activate ``/<node_name>``; return '' when active, else why not.
+
+        :param gone: true once waiting is pointless (the process ended, the launcher stops).
+        """
+        self._ensure_started()
+        with self._lock:
             client = self._node.create_client(ChangeState, f'/{node_name}/change_state')
         try:
             waited_s = 0.0
             while not client.wait_for_service(timeout_sec=0.2):
                 waited_s += 0.2
-                if cancelled.is_set():
+                if gone():
                     return 'stopped'
                 if waited_s >= SERVICE_TIMEOUT_S:
                     return f'{node_name}/change_state did not appear within ' \
