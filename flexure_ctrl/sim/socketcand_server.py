@@ -33,16 +33,16 @@ A client that sends anything else (bad syntax, unknown commands, a DLC above 8, 
 ASCII) or stops reading for ``io_timeout_s`` is logged and dropped; the others carry on.
 """
 
-import ipaddress
 import logging
 import select
 import socket
 import string
 import threading
-from typing import List, Optional, Set, Tuple
+from typing import List, Optional, Set
 
 import can
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.sim.loopback import loopback_address, LoopbackServer
 
 _log = logging.getLogger(__name__)
 
@@ -72,25 +72,6 @@ class SocketcandServerStateError(SocketcandServerError, RuntimeError):
 
 class SocketcandProtocolError(SocketcandServerError):
     """A client sent something that is not valid socketcand (raw mode); it is dropped."""
-
-
-def _loopback_address(host: str) -> Tuple[int, str]:
-    """
-    Socket family and literal address of a loopback ``host``.
-
-    :raises NonLoopbackHostError: if ``host`` is not ``localhost`` or a loopback IP.
-    """
-    literal = '127.0.0.1' if host == 'localhost' else host
-    try:
-        address = ipaddress.ip_address(literal)
-    except ValueError:
-        raise NonLoopbackHostError(
-            f'socketcand server host must be a loopback address, not {host!r}') from None
-    if not address.is_loopback:
-        raise NonLoopbackHostError(
-            f'socketcand server host must be a loopback address, not {host!r}')
-    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
-    return family, str(address)
 
 
 def _timestamp_text(timestamp_s: float) -> str:
@@ -315,7 +296,7 @@ class _ClientConnection:
         self._server._forget(self)
 
 
-class SocketcandServer:
+class SocketcandServer(LoopbackServer):
     """
     A software CAN bus reachable with python-can's ``socketcand`` interface.
 
@@ -334,10 +315,13 @@ class SocketcandServer:
     :raises NonLoopbackHostError: if ``host`` is not a loopback address.
     """
 
+    _state_error = SocketcandServerStateError
+
     def __init__(self, virtual_channel: str, channel: str = 'can0', host: str = '127.0.0.1',
                  port: int = 0, handshake_grace_s: float = 0.25,
                  io_timeout_s: float = 2.0) -> None:
-        self._family, self.host = _loopback_address(host)
+        self._family, self.host = loopback_address(
+            host, NonLoopbackHostError, 'socketcand server')
         if not 0 <= port <= 65535:
             raise ValueError(f'TCP port must be 0 to 65535, got {port}')
         if not channel or any(c.isspace() or c in '<>' for c in channel):
@@ -356,29 +340,10 @@ class SocketcandServer:
         self._state = 'new'
 
     def start(self) -> 'SocketcandServer':
-        """
-        Bind, listen and start accepting clients; listening when it returns.
-
-        :returns: the server itself, for chaining.
-        :raises SocketcandServerStateError: if the server was shut down.
-        :raises OSError: if the address cannot be bound (e.g. the port is in use).
-        """
+        """Listen and accept clients from now on (``_listen`` raises); return self."""
         with self._lock:
-            if self._state == 'running':
+            if not self._listen(16):
                 return self
-            if self._state == 'shut down':
-                raise SocketcandServerStateError('a shut-down server cannot be restarted')
-            listener = socket.socket(self._family, socket.SOCK_STREAM)
-            try:
-                # Lets a new server take the port at once, despite TIME_WAIT connections.
-                listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                listener.bind((self.host, self._requested_port))
-                listener.listen(16)
-            except OSError:
-                listener.close()
-                raise
-            self._listener = listener
-            self._port = listener.getsockname()[1]
             self._acceptor = threading.Thread(target=self._run_acceptor, daemon=True,
                                               name=f'socketcand-accept-{self._port}')
             self._acceptor.start()
@@ -388,17 +353,6 @@ class SocketcandServer:
         return self
 
     @property
-    def port(self) -> int:
-        """
-        TCP port the server listens on.
-
-        :raises SocketcandServerStateError: before :meth:`start`.
-        """
-        if self._port is None:
-            raise SocketcandServerStateError('the server has no port before start()')
-        return self._port
-
-    @property
     def client_count(self) -> int:
         """Return the number of connected clients (handshake done or not)."""
         with self._lock:
@@ -406,13 +360,7 @@ class SocketcandServer:
 
     def shutdown(self) -> None:
         """Close the listener and every client connection and join all threads; idempotent."""
-        with self._lock:
-            if self._state == 'shut down':
-                return
-            was_running = self._state == 'running'
-            self._state = 'shut down'
-            self._stopping.set()
-        if not was_running:
+        if not self._mark_shut_down():
             return
         self._acceptor.join()
         self._listener.close()

@@ -22,18 +22,18 @@ defaults (256 KiB backlog, 64 KiB kernel buffer, about 27 kB/s for one target at
 500 Hz) a client may pause for several seconds before it is dropped.
 """
 
-import ipaddress
 import logging
 import select
 import socket
 import threading
 import time
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence
 
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.tracker import (BEAM_BREAK_STATUS, DEFAULT_FORMAT, format_line,
                                        IDENTITY, RigTransform, TrackerLineFormat,
                                        TrackerParseError, TrackerSample)
+from flexure_ctrl.sim.loopback import loopback_address, LoopbackServer
 import numpy as np
 
 _log = logging.getLogger(__name__)
@@ -59,24 +59,6 @@ class TrackerServerStateError(TrackerServerError, RuntimeError):
     """The server is used before :meth:`TrackerServer.start` or after shutdown."""
 
 
-def loopback_address(host: str) -> Tuple[int, str]:
-    """
-    Return the socket family and literal address of a loopback ``host``.
-
-    :raises TrackerServerHostError: if ``host`` is not ``localhost`` or a loopback IP.
-    """
-    literal = '127.0.0.1' if host == 'localhost' else host
-    try:
-        address = ipaddress.ip_address(literal)
-    except ValueError:
-        address = None
-    if address is None or not address.is_loopback:
-        raise TrackerServerHostError(
-            f'tracker server host must be a loopback address, not {host!r}')
-    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
-    return family, str(address)
-
-
 class _Client:
     """One connected client: its socket and the bytes not yet accepted by the kernel."""
 
@@ -92,7 +74,7 @@ class _Client:
         return self.sock.fileno()
 
 
-class TrackerServer:
+class TrackerServer(LoopbackServer):
     """
     A simulated laser tracker streaming measurement lines to TCP clients on loopback.
 
@@ -115,13 +97,16 @@ class TrackerServer:
     :raises ValueError: if a number is out of range.
     """
 
+    _state_error = TrackerServerStateError
+
     def __init__(self, sample_targets: SampleTargets, rate_hz: float = 500.0,
                  noise_m: float = 2e-5, dropout_probability: float = 0.0,
                  to_tracker: RigTransform = IDENTITY, fmt: TrackerLineFormat = DEFAULT_FORMAT,
                  rng: Optional[np.random.Generator] = None, host: str = '127.0.0.1',
                  port: int = 0, max_backlog_bytes: int = 256 * 1024,
                  send_buffer_bytes: int = 64 * 1024) -> None:
-        self._family, self.host = loopback_address(host)
+        self._family, self.host = loopback_address(
+            host, TrackerServerHostError, 'tracker server')
         if not 0 <= port <= 65535:
             raise ValueError(f'TCP port must be 0 to 65535, got {port}')
         if not 0.0 < rate_hz <= 100_000.0:
@@ -157,30 +142,11 @@ class TrackerServer:
         self.clients_dropped = 0
 
     def start(self) -> 'TrackerServer':
-        """
-        Bind, listen and start streaming; listening when it returns.
-
-        :returns: the server itself, for chaining.
-        :raises TrackerServerStateError: if the server was shut down.
-        :raises OSError: if the address cannot be bound (e.g. the port is in use).
-        """
+        """Listen and stream to clients from now on (``_listen`` raises); return self."""
         with self._lock:
-            if self._state == 'running':
+            if not self._listen(8):
                 return self
-            if self._state == 'shut down':
-                raise TrackerServerStateError('a shut-down server cannot be restarted')
-            listener = socket.socket(self._family, socket.SOCK_STREAM)
-            try:
-                # Lets a new server take the port at once, despite TIME_WAIT connections.
-                listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                listener.bind((self.host, self._requested_port))
-                listener.listen(8)
-                listener.settimeout(_POLL_S)
-            except OSError:
-                listener.close()
-                raise
-            self._listener = listener
-            self._port = listener.getsockname()[1]
+            self._listener.settimeout(_POLL_S)
             self._threads = [
                 threading.Thread(target=self._run_acceptor, daemon=True,
                                  name=f'tracker-accept-{self._port}'),
@@ -194,17 +160,6 @@ class TrackerServer:
         return self
 
     @property
-    def port(self) -> int:
-        """
-        TCP port the server listens on.
-
-        :raises TrackerServerStateError: before :meth:`start`.
-        """
-        if self._port is None:
-            raise TrackerServerStateError('the server has no port before start()')
-        return self._port
-
-    @property
     def client_count(self) -> int:
         """Return the number of connected clients."""
         with self._lock:
@@ -212,13 +167,7 @@ class TrackerServer:
 
     def shutdown(self) -> None:
         """Stop streaming, disconnect every client and close the listener; idempotent."""
-        with self._lock:
-            if self._state == 'shut down':
-                return
-            was_running = self._state == 'running'
-            self._state = 'shut down'
-        self._stopping.set()
-        if not was_running:
+        if not self._mark_shut_down():
             return
         for thread in self._threads:
             thread.join(timeout=2.0)
