@@ -147,6 +147,11 @@ IN_PROCESS = {
         ['up', '--design', '{int_in_l0}', '--sim'],
         ['flexure-ctrl up: error: {int_in_l0}: design.table.l0_m: entry 9: expected a float '
          '(write 0.0), got 0 (int)'], 2),
+    'demo_design_the_nodes_refuse': Case(
+        ['demo', '--design', '{int_offset}', '--out', '{folder}/demo',
+         '--bag-dir', '{folder}/bags'],
+        ['flexure-ctrl demo: error: {int_offset}: design.geometry.link1_offset_m: '
+         'expected a float (write 0.0), got 0 (int)'], 2),
     'up_missing_rig_config': Case(
         ['up', '--design', 'cfa', '--rig-config', '{folder}/no_such.yaml'],
         ['flexure-ctrl up: error: --rig-config {folder}/no_such.yaml: no such file'], 2),

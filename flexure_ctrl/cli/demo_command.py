@@ -259,7 +259,9 @@ def _record_run(launcher: Launcher, operator: _Operator, bag_dir: Path, bag_name
 
 
 def run(arguments: argparse.Namespace) -> int:
-    up_command.check_period(arguments.period)  # refused here, before the rig starts
+    # The period, the files and the design (with the nodes' validator): refused here, in
+    # one line, before the rig starts.
+    up_command.check_options(_up_arguments(arguments))
     if arguments.iterations < 0:
         raise DemoError('--iterations must be 0 or more')
     if arguments.repeat_last not in (0, 1):
