@@ -159,17 +159,15 @@ def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_pa
 @pytest.mark.parametrize('period', ['0', '-5', 'nan', 'inf'])
 def test_a_period_not_above_zero_is_refused_before_any_process_starts(
         tmp_path, command, period):
-    # `up` once took --period 0 as not given and ran the default path; demo passes its
-    # --period on to `up`. Both refuse it by name, in one line, and start nothing.
+    # `up` once took --period 0 as not given and ran the default path; demo plans what up
+    # starts. Both refuse it by name, in one line, and start nothing (no output at all).
     out = tmp_path / 'out'
     extra = ['--out', str(out), '--bag-dir', str(tmp_path / 'bags')] if command == ['demo'] \
         else []
-    started = time.monotonic()
     result = subprocess.run(
         [sys.executable, '-m', 'flexure_ctrl.cli.main', *command, '--period', period, *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=60,
         env=os.environ)
-    elapsed_s = time.monotonic() - started
     assert result.returncode != 0
     assert result.stdout == ''
     lines = result.stderr.strip().splitlines()
@@ -177,6 +175,4 @@ def test_a_period_not_above_zero_is_refused_before_any_process_starts(
     assert lines[0].startswith(f'flexure-ctrl {command[0]}: ')
     assert '--period must be > 0 s' in lines[0]
     assert 'Traceback' not in result.stderr
-    assert '[up] started' not in result.stdout + result.stderr
-    assert elapsed_s < 10.0  # no rig, no nodes: just the interpreter and the imports
     assert not out.exists() and not (tmp_path / 'bags').exists()

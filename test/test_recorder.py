@@ -16,6 +16,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.bag import BagReader
+from flexure_ctrl.interface import RECORDER_INTAKE
 from flexure_ctrl.nodes.player import Player, PlayerConfigError
 from flexure_ctrl.nodes.recorder import Recorder
 from geometry_msgs.msg import PointStamped, PoseStamped
@@ -28,6 +29,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import NodeNameNonExistentError
 from rclpy.parameter import Parameter as RclpyParameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Reader
@@ -110,6 +112,20 @@ class RecorderProcess:
 
     def has_line(self, pattern):
         return any(re.search(pattern, line) for line in self.lines)
+
+    def wait_until_recording(self, node, topics, timeout_s=20.0):
+        """Wait until the graph shows the recorder subscribed to ``topics`` (not its log)."""
+        def subscribed():
+            try:
+                present = {name for name, _ in node.get_subscriber_names_and_types_by_node(
+                    RECORDER_INTAKE, '/')}
+            except NodeNameNonExistentError:
+                return False
+            return set(topics) <= present
+
+        wait_for(lambda: subscribed() or self.process.poll() is not None, timeout_s,
+                 f'the recorder to subscribe to {", ".join(topics)}')
+        assert subscribed(), self.output()
 
     def wait_for_line(self, pattern, timeout_s=20.0):
         wait_for(lambda: self.has_line(pattern) or self.process.poll() is not None,
@@ -247,7 +263,8 @@ def test_stopping_mid_recording_leaves_a_complete_bag(tmp_path, ros, signal_numb
     publisher = Publisher(ros_.node, topics=(POINTS,))
     recorder = RecorderProcess(tmp_path, 'stopped', [POINTS])
     try:
-        recorder.wait_for_line(rf'bag: {tmp_path}/stopped')
+        recorder.wait_until_recording(ros_.node, [POINTS])
+        recorder.wait_for_line(rf'bag: {tmp_path}/stopped')  # the log names bag and type
         recorder.wait_for_line(rf'recording {POINTS} \[geometry_msgs/msg/PointStamped\]')
         wait_for(publisher.matched, 10.0, 'the recorder to match the publisher')
         publisher.start()
@@ -299,7 +316,7 @@ def test_sigkill_leaves_the_earlier_messages_readable(tmp_path, ros):
     publisher = Publisher(ros_.node, topics=(POINTS,))
     recorder = RecorderProcess(tmp_path, 'killed', [POINTS])
     try:
-        recorder.wait_for_line(rf'recording {POINTS}')
+        recorder.wait_until_recording(ros_.node, [POINTS])
         wait_for(publisher.matched, 10.0, 'the recorder to match the publisher')
         publisher.start()
         wait_for(lambda: metadata_count(recorder.folder) >= 300, 15.0, 'messages in the bag')
@@ -331,8 +348,7 @@ def recorded_run(tmp_path_factory):
         publisher = Publisher(ros_.node)
         recorder = RecorderProcess(bag_dir, 'run', RUN_TOPICS)
         try:
-            for topic in RUN_TOPICS:
-                recorder.wait_for_line(rf'recording {topic} \[')
+            recorder.wait_until_recording(ros_.node, RUN_TOPICS)
             wait_for(publisher.matched, 10.0, 'the recorder to match the publishers')
             publisher.start(ticks=int(RATE_HZ))
             total = int(RATE_HZ) + int(RATE_HZ) // 10 + int(RATE_HZ) // 50 + 1
