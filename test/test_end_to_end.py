@@ -101,7 +101,7 @@ class Rig:
 
     @property
     def lines(self):
-        """What `up` and its nodes printed (each line prefixed by its process's name)."""
+        """Return what `up` and its nodes printed (each line prefixed by its process)."""
         return [line[len('[up] '):] for line in self.launcher.lines if line.startswith('[up] ')]
 
     def spin_until(self, condition, timeout_s):

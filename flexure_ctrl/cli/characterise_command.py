@@ -140,9 +140,9 @@ def start_simulated_rig(launcher, design_file: Path, sim_config: Path, can_port:
     from flexure_ctrl.cli.launcher import LOOPS, node_launches, sim_launch, TRACKER_BRIDGE
 
     overrides = folder / 'overrides.yaml'
-    loop_port = {'ros__parameters': {'can': {'port': can_port}}}
     overrides.write_text(yaml.safe_dump({
-        **{f'/{actuator}': loop_port for actuator in ACTUATOR_NAMES},
+        **{f'/{actuator}': {'ros__parameters': {'can': {'port': can_port}}}
+           for actuator in ACTUATOR_NAMES},
         f'/{TRACKER_BRIDGE.name}': {'ros__parameters': {'port': tracker_port}}}))
     rig_config = find_config_file('sim.yaml').resolve()
     launches = [sim_launch(plant_file or design_file, can_port, tracker_port, sim_config)]
