@@ -34,10 +34,6 @@ class RosProbe:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        # Graph queries and the node's destruction exclude each other (not transitions,
-        # which hold _lock while they spin): a query never meets a destroyed node.
-        self._graph_lock = threading.Lock()
-        self._closed = False
         self._context: Optional[Context] = None
 
     def _start(self) -> None:
@@ -69,17 +65,14 @@ class RosProbe:
                    (ready.services, self._node.get_service_names_and_types_by_node))
         while True:
             missing = []
-            with self._graph_lock:
-                if self._closed:
-                    return 'stopped'
-                for wanted, query in queries:
-                    if not wanted:
-                        continue
-                    try:
-                        present = {name for name, _ in query(ready.node, '/')}
-                    except NodeNameNonExistentError:
-                        present = set()
-                    missing += [name for name in wanted if name not in present]
+            for wanted, query in queries:
+                if not wanted:
+                    continue
+                try:
+                    present = {name for name, _ in query(ready.node, '/')}
+                except NodeNameNonExistentError:
+                    present = set()
+                missing += [name for name in wanted if name not in present]
             if not missing:
                 return ''
             if gone():
@@ -125,8 +118,7 @@ class RosProbe:
 
     def shutdown(self) -> None:
         """Destroy the launcher's node; idempotent."""
-        with self._lock, self._graph_lock:
-            self._closed = True
+        with self._lock:
             if self._context is not None and self._context.ok():
                 self._executor.shutdown()
                 self._node.destroy_node()
