@@ -302,9 +302,21 @@ def test_parameters_out_of_range_are_rejected_at_set_time(running):
     ('node_id:=128', InvalidParameterValueException),
     ('actuator:=actuator_3', ActuatorLoopConfigError),
 ])
-def test_bad_parameters_fail_at_start(context, channel, override, error):
-    with pytest.raises(error):
+def test_bad_parameters_fail_at_start(harness, context, channel, override, error):
+    with pytest.raises(error) as refused:
         make_node(context, channel, '-p', override)
+    # The half-built node left the graph at once (the traceback still holds it): a stale
+    # change_state server of the same name would swallow a launcher's configure.
+    assert ACTUATOR not in harness.helper.get_node_names(), refused
+
+
+def test_a_destroyed_loop_leaves_the_ros_graph_at_once(running):
+    harness = running
+    assert ACTUATOR in harness.helper.get_node_names()
+    harness.executor.remove_node(harness.node)
+    harness.node.destroy_node()
+    harness.node = None
+    assert ACTUATOR not in harness.helper.get_node_names()
 
 
 def test_missing_stroke_limit_fails_at_start(context, channel):

@@ -89,6 +89,7 @@ class ActuatorLoopConfigError(FlexureCtrlError, ValueError):
 class ActuatorLoop(LifecycleNode):
     """P-loop of one lead-screw actuator, commanding its CiA 402 drive over CAN."""
 
+    @common.leaves_no_half_built_node
     def __init__(self, node_name: str = 'actuator_loop', **kwargs) -> None:
         """
         Declare parameters, read the drive's EDS, wire topics and services; unconfigured.
@@ -494,7 +495,7 @@ class ActuatorLoop(LifecycleNode):
     def destroy_node(self) -> None:
         """Stop the drive safely (if not done yet), then destroy the node."""
         self.safe_stop()
-        super().destroy_node()
+        common.destroy_rcl_node(self)
 
 
 def main(args: Optional[List[str]] = None) -> None:

@@ -30,6 +30,7 @@ from flexure_ctrl.core.characterisation import (CharacterisationError, CommandCo
                                                 RunAborted, SweepRunner)
 from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic, CHARACTERISER,
                                     SETPOINTS_TOPIC, tracker_topic, TRAJECTORY_GENERATOR)
+from flexure_ctrl.nodes.common import leaves_no_half_built_node
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -60,6 +61,7 @@ class Characteriser(Node):
     :param on_finished: called once with None (complete) or the error that ended the run.
     """
 
+    @leaves_no_half_built_node
     def __init__(self, runner: SweepRunner, actuator: str, stroke_limit_m: float,
                  rate_hz: float = 50.0, discovery_wait_s: float = 1.0,
                  ready_timeout_s: float = 20.0, abort_hold_s: float = 0.3,

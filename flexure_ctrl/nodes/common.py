@@ -5,6 +5,7 @@ Nodes stay thin: they declare parameters (with descriptors and ranges, so that a
 value is rejected when it is set), wire topics and timers, and call the core.
 """
 
+import functools
 import os
 import re
 import signal
@@ -31,6 +32,40 @@ from rclpy.signals import SignalHandlerOptions
 RCLError = rclpy_implementation.RCLError
 UnknownROSArgsError = rclpy_implementation.UnknownROSArgsError
 RIG_FRAME = 'rig'
+
+
+def leaves_no_half_built_node(init: Callable) -> Callable:
+    """
+    Decorate a node class's ``__init__``: if it raises, the half-built node is destroyed.
+
+    A node whose parameters are refused would otherwise stay in the ROS graph, with the
+    services rclpy gave it, until the garbage collector happens to free it. A lifecycle
+    node's ``change_state`` among them: a launcher calling that name would reach the dead
+    server, which never answers, instead of the live one.
+    """
+    @functools.wraps(init)
+    def build(node: Node, *args, **kwargs) -> None:
+        try:
+            init(node, *args, **kwargs)
+        except BaseException:
+            if hasattr(node, 'handle'):  # else rclpy never created the node
+                destroy_rcl_node(node)
+            raise
+    return build
+
+
+def destroy_rcl_node(node: Node) -> None:
+    """
+    Destroy ``node``'s rclpy entities, a lifecycle node's state machine included.
+
+    rclpy (Jazzy) leaves a destroyed lifecycle node in the ROS graph, its ``change_state``
+    service still announced, until the garbage collector frees the state machine that
+    holds its handle; destroying the state machine too takes it out of the graph at once.
+    """
+    Node.destroy_node(node)
+    state_machine = getattr(node, '_state_machine', None)
+    if state_machine is not None:
+        state_machine.destroy_when_not_in_use()
 
 
 def latched_qos() -> QoSProfile:

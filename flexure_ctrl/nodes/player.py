@@ -28,7 +28,7 @@ from builtin_interfaces.msg import Time
 from flexure_ctrl.core.bag import BagError, BagReader
 from flexure_ctrl.interface import CLOCK_TOPIC, PLAYER
 from flexure_ctrl.nodes.bag_qos import message_class, publisher_qos
-from flexure_ctrl.nodes.common import float_descriptor, run_node, typed_descriptor
+from flexure_ctrl.nodes.common import leaves_no_half_built_node, float_descriptor, run_node, typed_descriptor
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -46,6 +46,7 @@ class PlayerConfigError(BagError, ValueError):
 class Player(Node):
     """Publish a bag's messages on their topics, with the recorded timing."""
 
+    @leaves_no_half_built_node
     def __init__(self, node_name: str = PLAYER, **kwargs) -> None:
         """
         Declare parameters, open the bag, create the publishers; start if ``autostart``.

@@ -31,7 +31,7 @@ from flexure_ctrl.core.bag import BagError, BagWriter
 from flexure_ctrl.interface import INTAKE_SUFFIX, RECORDER, RUN_TOPICS
 from flexure_ctrl.nodes.bag_qos import message_class, qos_to_dict, RECORD_DEPTH
 from flexure_ctrl.nodes.bag_qos import subscription_qos
-from flexure_ctrl.nodes.common import float_descriptor, run_node_to_a_clean_stop
+from flexure_ctrl.nodes.common import leaves_no_half_built_node, float_descriptor, run_node_to_a_clean_stop
 from flexure_ctrl.nodes.common import typed_descriptor
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
@@ -50,6 +50,7 @@ def default_bag_name(now_s: Optional[float] = None) -> str:
 class Recorder(Node):
     """Record topics, raw, into one bag folder."""
 
+    @leaves_no_half_built_node
     def __init__(self, node_name: str = RECORDER, **kwargs) -> None:
         """
         Declare parameters, open the bag and start watching the graph.

@@ -49,7 +49,7 @@ from flexure_ctrl.core.tracker import declared_targets, END_TARGET
 from flexure_ctrl.core.tracker import (DEFAULT_FIELDS, LineAssembler, parse_line,
                                        RigTransform, TrackerLineFormat, TrackerParseError)
 from flexure_ctrl.interface import DIAGNOSTICS_TOPIC, TRACKER_BRIDGE, tracker_topic
-from flexure_ctrl.nodes.common import (float_descriptor, int_descriptor, RIG_FRAME, run_node,
+from flexure_ctrl.nodes.common import (leaves_no_half_built_node, float_descriptor, int_descriptor, RIG_FRAME, run_node,
                                        typed_descriptor)
 from geometry_msgs.msg import PointStamped
 import numpy as np
@@ -86,6 +86,7 @@ def point_qos() -> QoSProfile:
 class TrackerBridge(Node):
     """Read the laser tracker's TCP stream and publish each target's rig-frame point."""
 
+    @leaves_no_half_built_node
     def __init__(self, **kwargs):
         super().__init__(TRACKER_BRIDGE, **kwargs)
         string, strings, doubles = (ParameterType.PARAMETER_STRING,

@@ -61,6 +61,7 @@ def seconds_to_time(t_s: float) -> Time:
 class TrajectoryGenerator(Node):
     """Plan, start, watch and end runs of the path; publish the demand while one lasts."""
 
+    @common.leaves_no_half_built_node
     def __init__(self, **kwargs):
         super().__init__(interface.TRAJECTORY_GENERATOR, **kwargs)
         ranged = (
