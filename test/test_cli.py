@@ -147,6 +147,38 @@ def test_bring_up_stops_at_a_process_that_ends_and_starts_nothing_after_it():
                    for line in launcher.lines)
 
 
+def twins(count):
+    """Return a process with ``count`` nodes named ``twin``, each publishing ``/flexure/twin``."""
+    return [sys.executable, '-c', (
+        'import rclpy\n'
+        'from std_msgs.msg import String\n'
+        'rclpy.init()\n'
+        f"nodes = [rclpy.create_node('twin') for _ in range({count})]\n"
+        "for node in nodes: node.create_publisher(String, '/flexure/twin', 1)\n"
+        'rclpy.spin(nodes[0])\n')]
+
+
+def test_a_second_node_of_a_name_in_the_graph_is_never_started():
+    # Two loops of one name would command one drive, and a launcher's transitions could
+    # reach either. The first twin runs; the second is refused before its process starts.
+    ready = InGraph('twin', publishers=('/flexure/twin',))
+    with Launcher(quiet=True) as launcher:
+        assert launcher.bring_up([('twin', twins(1), ready)])
+        assert not launcher.bring_up([('twin', twins(1), ready)])
+        assert [name for name, _ in launcher.children] == ['twin']
+        assert launcher.lines[-1].startswith(
+            f'[launcher] a node named /twin already runs in ROS domain '
+            f'{os.environ["ROS_DOMAIN_ID"]}')
+
+
+def test_a_node_whose_name_shows_twice_once_up_is_not_up():
+    # A twin the launcher's graph had not yet discovered before the start.
+    with Launcher(quiet=True) as launcher:
+        assert not launcher.bring_up(
+            [('twin', twins(2), InGraph('twin', publishers=('/flexure/twin',)))])
+        assert any('a node named /twin already runs' in line for line in launcher.lines)
+
+
 def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_path, capsys):
     status = main(['demo', '--spike-threshold', '-1', '--out', str(tmp_path / 'out')])
     assert status != 0

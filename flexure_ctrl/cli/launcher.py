@@ -269,6 +269,18 @@ class Launcher:
             time.sleep(PROBE_PERIOD_S)
         return ''
 
+    def _already_running(self, ready: Readiness) -> str:
+        """
+        Say why a node awaited by name must not start: one of that name is in the graph.
+
+        Two loops of one name would command one drive. The graph is only complete once
+        discovery has run, so a node that readiness awaits is also counted when it is up.
+        """
+        if not isinstance(ready, (InGraph, Active)):
+            return ''
+        from flexure_ctrl.cli.ros_probe import already_running
+        return already_running(ready.node) if self._ros_probe().count_nodes(ready.node) else ''
+
     def bring_up(self, launches: Sequence[Tuple[str, List[str], Readiness]],
                  niceness_of=lambda name: 0, stop_requested: Optional[threading.Event] = None,
                  timeout_s: float = READY_TIMEOUT_S) -> bool:
@@ -276,10 +288,15 @@ class Launcher:
         Start each ``(name, command, readiness)`` once the one before is up.
 
         :return: True once all are up; False when one ended, did not come up within
-            ``timeout_s`` s, or ``stop_requested`` was set (the caller stops the rest).
+            ``timeout_s`` s, had a namesake in the ROS graph, or ``stop_requested`` was set
+            (the caller stops the rest).
         """
         stop_requested = stop_requested or threading.Event()
         for name, command, ready in launches:
+            problem = self._already_running(ready)
+            if problem:
+                self.say(self.name, problem)
+                return False
             _, up = self.start(name, command, ready, niceness=niceness_of(name))
             deadline = time.monotonic() + timeout_s
             while not up.wait(0.1):  # a timed wait lets signal handlers run

@@ -8,6 +8,7 @@ the endpoints it creates when it is set up. Both are signals from the node, not 
 its log.
 """
 
+import os
 import threading
 import time
 from typing import Callable, Optional
@@ -29,6 +30,13 @@ TRANSITIONS = ((Transition.TRANSITION_CONFIGURE, 'configure'),
                (Transition.TRANSITION_ACTIVATE, 'activate'))
 
 
+def already_running(node_name: str) -> str:
+    """Say that another node named ``/<node_name>`` is in the graph, in one line."""
+    return (f'a node named /{node_name} already runs in ROS domain '
+            f'{os.environ.get("ROS_DOMAIN_ID", "0")} (another flexure-ctrl up, or a process '
+            'left over): stop it first')
+
+
 class RosProbe:
     """One rclpy node in the launcher that watches the graph and calls transitions."""
 
@@ -48,6 +56,12 @@ class RosProbe:
         with self._lock:
             if self._context is None:
                 self._start()
+
+    def count_nodes(self, node_name: str) -> int:
+        """Return how many nodes named ``/<node_name>`` the graph shows now."""
+        self._ensure_started()
+        return sum(1 for name, namespace in self._node.get_node_names_and_namespaces()
+                   if (name, namespace) == (node_name, '/'))
 
     def wait_in_graph(self, ready, gone: Callable[[], bool], timeout_s: float) -> str:
         """
@@ -74,7 +88,7 @@ class RosProbe:
                     present = set()
                 missing += [name for name in wanted if name not in present]
             if not missing:
-                return ''
+                return already_running(ready.node) if self.count_nodes(ready.node) > 1 else ''
             if gone():
                 return 'stopped'
             if time.monotonic() > deadline:
@@ -100,6 +114,10 @@ class RosProbe:
                 if waited_s >= SERVICE_TIMEOUT_S:
                     return f'{node_name}/change_state did not appear within ' \
                            f'{SERVICE_TIMEOUT_S:.0f} s'
+            # A server of that name that is not the node just started would take the
+            # request and never answer, or worse, answer for another process.
+            if self.count_nodes(node_name) > 1:
+                return already_running(node_name)
             for transition_id, label in TRANSITIONS:
                 request = ChangeState.Request()
                 request.transition.id = transition_id

@@ -21,7 +21,7 @@ from flexure_ctrl.core.inverse import InverseSolver
 from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.interface import (ACTUATOR_NAMES, COMMAND_TOPIC, DIAGNOSTICS_TOPIC,
                                     INVERSE_SOLVER, RUN_STATUS_NAME, RUN_TOPIC, SETPOINTS_TOPIC)
-from flexure_ctrl.nodes.common import leaves_no_half_built_node, declare_design, run_node
+from flexure_ctrl.nodes.common import declare_design, leaves_no_half_built_node, run_node
 from flexure_ctrl.nodes.run_messages import pairs_of
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node

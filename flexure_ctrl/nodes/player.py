@@ -28,7 +28,8 @@ from builtin_interfaces.msg import Time
 from flexure_ctrl.core.bag import BagError, BagReader
 from flexure_ctrl.interface import CLOCK_TOPIC, PLAYER
 from flexure_ctrl.nodes.bag_qos import message_class, publisher_qos
-from flexure_ctrl.nodes.common import leaves_no_half_built_node, float_descriptor, run_node, typed_descriptor
+from flexure_ctrl.nodes.common import (float_descriptor, leaves_no_half_built_node, run_node,
+                                       typed_descriptor)
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
 from rclpy.parameter import Parameter

@@ -31,7 +31,8 @@ from flexure_ctrl.core.bag import BagError, BagWriter
 from flexure_ctrl.interface import INTAKE_SUFFIX, RECORDER, RUN_TOPICS
 from flexure_ctrl.nodes.bag_qos import message_class, qos_to_dict, RECORD_DEPTH
 from flexure_ctrl.nodes.bag_qos import subscription_qos
-from flexure_ctrl.nodes.common import leaves_no_half_built_node, float_descriptor, run_node_to_a_clean_stop
+from flexure_ctrl.nodes.common import (float_descriptor, leaves_no_half_built_node,
+                                       run_node_to_a_clean_stop)
 from flexure_ctrl.nodes.common import typed_descriptor
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType

@@ -49,7 +49,8 @@ from flexure_ctrl.core.tracker import declared_targets, END_TARGET
 from flexure_ctrl.core.tracker import (DEFAULT_FIELDS, LineAssembler, parse_line,
                                        RigTransform, TrackerLineFormat, TrackerParseError)
 from flexure_ctrl.interface import DIAGNOSTICS_TOPIC, TRACKER_BRIDGE, tracker_topic
-from flexure_ctrl.nodes.common import (leaves_no_half_built_node, float_descriptor, int_descriptor, RIG_FRAME, run_node,
+from flexure_ctrl.nodes.common import (float_descriptor, int_descriptor,
+                                       leaves_no_half_built_node, RIG_FRAME, run_node,
                                        typed_descriptor)
 from geometry_msgs.msg import PointStamped
 import numpy as np
