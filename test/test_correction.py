@@ -244,9 +244,13 @@ def test_a_stall_in_one_run_is_neither_learned_nor_taken_for_a_stalled_learning(
     # ... and the run, better but for the stall, keeps the gain.
     assert corrector.gain == 1.0 and corrector.note == ''
     assert 0.1 < corrector.iterations[-1].spike_seconds() < 0.4
-    # Learning everything puts the stall's mirror image into the next command.
+    # Learning everything puts the stall's mirror image into the next command. The run
+    # is still scored by its RMS error, which the 0.13 s stall hardly moves (its maximum
+    # is the stall's 3 mm): learning that gains everywhere else is not slowed.
     corrector, departure_m = learn_through_a_spike(spike_threshold=None)
-    assert departure_m[1] > 1e-4 and 'gain reduced' in corrector.note
+    assert departure_m[1] > 1e-4
+    assert corrector.iterations[-1].max_abs_error_m[1] > 2e-3
+    assert corrector.gain == 1.0 and corrector.note == ''
 
 
 def test_command_csv_is_a_waypoint_file_of_the_paths_duration(tmp_path):

@@ -15,8 +15,8 @@ import argparse
 from pathlib import Path
 
 from flexure_ctrl.core.correction import (DEFAULT_BRIDGE_MAX_S, DEFAULT_CUTOFF_HZ,
-                                          DEFAULT_SPIKE_THRESHOLD, IterativeCorrector,
-                                          path_errors)
+                                          DEFAULT_LATER_GAIN, DEFAULT_SPIKE_THRESHOLD,
+                                          IterativeCorrector, path_errors)
 from flexure_ctrl.core.errors import CorrectionError
 from flexure_ctrl.core.runs import load_last_run
 
@@ -26,7 +26,7 @@ def add_learning_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--gain', type=float, default=1.0,
                         help='learning gain gamma of the first correction, in (0, 2]; 1 is '
                              "the paper's Eq. 8 (default: %(default)s)")
-    parser.add_argument('--later-gain', type=float, default=0.5,
+    parser.add_argument('--later-gain', type=float, default=DEFAULT_LATER_GAIN,
                         help='learning gain of the later corrections, in (0, 2]: below 1 an '
                              'unrepeatable error of one run is not mirrored into the next '
                              '(default: %(default)s)')
