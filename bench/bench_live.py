@@ -44,10 +44,16 @@ import can
 from flexure_ctrl.cli.launcher import free_port
 from flexure_ctrl.core.design import load_design
 from flexure_ctrl.core.inverse import InverseSolver
+from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic,
+                                    actuator_status_topic, COMMAND_TOPIC, RECORDER_INTAKE,
+                                    START_SERVICE)
 from geometry_msgs.msg import PointStamped
+from lifecycle_msgs.msg import State
+from lifecycle_msgs.srv import GetState
 import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import NodeNameNonExistentError
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -122,20 +128,36 @@ class System:
                    '--ros-arg', f'trajectory_generator:lead_in_s:={LEAD_IN_S}']
         cores = sorted(os.sched_getaffinity(0))
         self.loop_cores, self.other_cores = cores[-1:], cores[:-1] or cores
+        self.pinned = pinned
         if pinned:
-            for actuator in ('actuator_1', 'actuator_2'):
+            for actuator in ACTUATOR_NAMES:
                 command += ['--ros-arg', f'{actuator}:cpu_affinity:={self.loop_cores}',
                             '--ros-arg', f'{actuator}:realtime_priority:={LOOP_PRIORITY}']
         self.process = subprocess.Popen(command, stdout=subprocess.PIPE,
                                         stderr=subprocess.STDOUT, text=True)
         self.lines = []
         self.pids = {}
-        self._ready = threading.Event()
         threading.Thread(target=self._pump, daemon=True).start()
-        if not self._ready.wait(120.0):
-            self.close()
-            raise SystemExit('the system did not come up:\n' + ''.join(self.lines[-30:]))
-        if pinned:
+
+    def wait_until_up(self, node) -> None:
+        """Return once both loops are active (lifecycle ``get_state``), as ``up`` awaits."""
+        deadline = time.monotonic() + 120.0
+        clients = [node.create_client(GetState, f'/{actuator}/get_state')
+                   for actuator in ACTUATOR_NAMES]
+        waiting = list(clients)
+        while waiting:
+            if time.monotonic() > deadline or self.process.poll() is not None:
+                self.close()
+                raise SystemExit('the system did not come up:\n' + ''.join(self.lines[-30:]))
+            if waiting[0].service_is_ready():
+                answer = call(waiting[0], GetState.Request(), 5.0)
+                if answer is not None and answer.current_state.id == State.PRIMARY_STATE_ACTIVE:
+                    waiting.pop(0)
+                    continue
+            time.sleep(0.1)
+        for client in clients:
+            node.destroy_client(client)
+        if self.pinned:
             # Everything but the loop threads on the other cores; the loop processes'
             # other threads too (the loop threads set their own affinity).
             for pid in list(self.pids.values()) + [os.getpid(), self.process.pid]:
@@ -149,16 +171,24 @@ class System:
     def _pump(self):
         for line in self.process.stdout:
             self.lines.append(line)
+            # Which process is which, for the CPU figures (readiness is not read here).
             match = re.match(r'\[up\] started (\S+) \(pid (\d+)\)', line)
             if match:
                 self.pids[match.group(1)] = int(match.group(2))
-            if 'all processes up' in line:
-                self._ready.set()
 
     def close(self):
         if self.process.poll() is None:
             self.process.send_signal(signal.SIGINT)
             self.process.wait(timeout=60.0)
+
+
+def call(client, request, timeout_s: float):
+    """Call ``client`` (its node spun elsewhere); return the answer, None on time-out."""
+    future = client.call_async(request)
+    deadline = time.monotonic() + timeout_s
+    while not future.done() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return future.result() if future.done() else None
 
 
 def measure(arguments, pinned: bool) -> dict:
@@ -171,27 +201,25 @@ def measure(arguments, pinned: bool) -> dict:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     states = []
-    for actuator in ('actuator_1', 'actuator_2'):
+    for actuator in ACTUATOR_NAMES:
         node_id = int(actuator[-1])
         node.create_subscription(
-            JointState, f'/flexure/{actuator}/state',
+            JointState, actuator_state_topic(actuator),
             lambda m, n=node_id: states.append(
                 (n, m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)), 1000)
-    publisher = node.create_publisher(PointStamped, '/flexure/command', 10)
-    start = node.create_client(Trigger, '/trajectory_generator/start')
+    publisher = node.create_publisher(PointStamped, COMMAND_TOPIC, 10)
+    start = node.create_client(Trigger, START_SERVICE)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     recorder = None
     figures = {}
     try:
+        system.wait_until_up(node)
         if not start.wait_for_service(timeout_sec=30.0):
-            raise SystemExit('no /trajectory_generator/start')
-        future = start.call_async(Trigger.Request())
-        deadline = time.monotonic() + 30.0
-        while not future.done() and time.monotonic() < deadline:
-            time.sleep(0.02)
-        if not (future.done() and future.result().success):
-            raise SystemExit(f'the run did not start: {future.result()}')
+            raise SystemExit(f'no {START_SERVICE}')
+        answer = call(start, Trigger.Request(), 30.0)
+        if not (answer is not None and answer.success):
+            raise SystemExit(f'the run did not start: {answer}')
         path_start_s = time.monotonic() + LEAD_IN_S
         time.sleep(max(0.0, path_start_s + 1.0 - time.monotonic()))
         window_start = time.time_ns()
@@ -204,8 +232,11 @@ def measure(arguments, pinned: bool) -> dict:
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         recorded = []
         threading.Thread(target=lambda: recorded.extend(recorder.stdout), daemon=True).start()
+        # Recording once the graph shows the recorder's subscriptions to both loops.
+        wanted = {topic(actuator) for actuator in ACTUATOR_NAMES
+                  for topic in (actuator_state_topic, actuator_status_topic)}
         deadline = time.monotonic() + 20.0
-        while sum('recording /flexure/actuator_' in line for line in recorded) < 4:
+        while not wanted <= recorder_subscriptions(node):
             if time.monotonic() > deadline:
                 raise SystemExit('the recorder did not subscribe:\n' + ''.join(recorded))
             time.sleep(0.05)
@@ -231,6 +262,15 @@ def measure(arguments, pinned: bool) -> dict:
         sniffer.close()
         system.close()
     return figures
+
+
+def recorder_subscriptions(node) -> set:
+    """Return the topics the recorder's intake node subscribes to, as the graph shows."""
+    try:
+        return {name for name, _ in node.get_subscriber_names_and_types_by_node(
+            RECORDER_INTAKE, '/')}
+    except NodeNameNonExistentError:
+        return set()
 
 
 def setpoint_timing(frames, states) -> np.ndarray:
