@@ -35,6 +35,8 @@ READY_TIMEOUT_S = 60.0
 # How often a readiness probe looks again (s): the graph and ports have no push signal
 # that a process outside rclpy's executor could wait on.
 PROBE_PERIOD_S = 0.1
+# Longest wait (s) in stop_all for a readiness wait to notice the stop and return.
+READINESS_EXIT_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -177,6 +179,7 @@ class Launcher:
         self._probe = None  # a RosProbe once a readiness needs the graph
         self._probe_lock = threading.Lock()
         self._cancelled = threading.Event()
+        self._readiness_threads: List[threading.Thread] = []
 
     def __enter__(self) -> 'Launcher':
         return self
@@ -241,7 +244,9 @@ class Launcher:
                     self.say(self.name, problem)
                     self.first_exit.set()
                 up.set()
-            threading.Thread(target=await_ready, name=f'ready-{name}', daemon=True).start()
+            waiter = threading.Thread(target=await_ready, name=f'ready-{name}', daemon=True)
+            self._readiness_threads.append(waiter)
+            waiter.start()
         return process, up
 
     def _await(self, ready: Readiness, process: subprocess.Popen) -> str:
@@ -319,6 +324,10 @@ class Launcher:
             code = self._stop(name, process)
             if code not in (0, -signal.SIGINT, 130):
                 worst = 1
+        # A readiness wait sees the cancel within one probe period; it must be out of the
+        # probe's node before that node is destroyed.
+        for waiter in self._readiness_threads:
+            waiter.join(timeout=READINESS_EXIT_S)
         with self._probe_lock:
             if self._probe is not None:
                 self._probe.shutdown()

@@ -26,6 +26,7 @@ SERVICE_TIMEOUT_S = 60.0
 # Longest configure (s): the loop retries the bus and the drive for connect_timeout_s
 # (10 s by default), each commissioning step has its SDO timeout.
 TRANSITION_TIMEOUT_S = 60.0
+TRANSITION_SLICE_S = 0.1
 TRANSITIONS = ((Transition.TRANSITION_CONFIGURE, 'configure'),
                (Transition.TRANSITION_ACTIVATE, 'activate'))
 
@@ -122,8 +123,13 @@ class RosProbe:
                 request = ChangeState.Request()
                 request.transition.id = transition_id
                 future = client.call_async(request)
-                with self._lock:
-                    self._executor.spin_until_future_complete(future, TRANSITION_TIMEOUT_S)
+                deadline = time.monotonic() + TRANSITION_TIMEOUT_S
+                # In slices: a stop of the launcher ends the wait within one.
+                while not future.done() and time.monotonic() < deadline:
+                    if gone():
+                        return 'stopped'
+                    with self._lock:
+                        self._executor.spin_until_future_complete(future, TRANSITION_SLICE_S)
                 if not future.done():
                     return f'{label} of {node_name} did not end within ' \
                            f'{TRANSITION_TIMEOUT_S:.0f} s'
