@@ -32,7 +32,7 @@ from typing import List, Optional, Sequence, Tuple, Union
 
 from flexure_ctrl.core.errors import CorrectionError
 import numpy as np
-from scipy.ndimage import maximum_filter1d, median_filter, uniform_filter1d
+from scipy.ndimage import binary_closing, maximum_filter1d, median_filter, uniform_filter1d
 from scipy.signal import butter, sosfiltfilt
 
 NS_PER_S = 1_000_000_000
@@ -268,7 +268,9 @@ def unrepeated_spikes(errors: 'PathErrors', previous: 'PathErrors',
     from ``previous`` (on the same path times) both depart sharply from their running
     medians (:func:`sharp_deviations`). A spike both runs share cancels in the
     difference and is kept. The mask is widened by ``margin_s`` each side, where the
-    spike's flanks sink into the scatter.
+    spike's flanks sink into the scatter, and closed over holes shorter than
+    ``window_s``: inside an excursion longer than half the window the running median
+    follows the excursion, and only its sharp parts stand out.
     """
     if not (window_s > 0.0 and threshold > 0.0 and margin_s >= 0.0):
         raise CorrectionError(f'spike window {window_s} s and threshold {threshold} must be '
@@ -281,17 +283,31 @@ def unrepeated_spikes(errors: 'PathErrors', previous: 'PathErrors',
     margin = int(round(margin_s * rate_hz))
     if margin and spikes.any():
         spikes = maximum_filter1d(spikes.astype(np.uint8), 2 * margin + 1) > 0
+    window = max(1, int(round(window_s * rate_hz)))
+    if spikes.any():
+        spikes = spikes | binary_closing(spikes, structure=np.ones(window, dtype=bool))
     return spikes
 
 
-def without_spikes(errors: 'PathErrors', spikes: np.ndarray,
-                   window_s: float = DEFAULT_SPIKE_WINDOW_S) -> 'PathErrors':
-    """Return ``errors`` with the grid error inside ``spikes`` replaced by its running median."""
+def without_spikes(errors: 'PathErrors', spikes: np.ndarray) -> 'PathErrors':
+    """
+    Return ``errors`` with the grid samples inside ``spikes`` left out of learning.
+
+    They count as a long tracker gap does: the update there is zero, ramping in at the
+    edges, so the command keeps its value where the run was disturbed. For the filter
+    Q the error inside is bridged linearly between the samples either side, so that
+    the disturbance does not leak into its neighbourhood either.
+    """
     spikes = np.asarray(spikes, dtype=bool)
     if not spikes.any():
         return errors
-    trend = running_median(errors.grid_error_m, errors.grid_rate_hz, window_s)
-    return replace(errors, grid_error_m=np.where(spikes[:, None], trend, errors.grid_error_m))
+    if spikes.all():
+        return replace(errors, grid_learnable=np.zeros_like(errors.grid_learnable))
+    t_s, kept = errors.grid_t_s, ~spikes
+    bridged = np.column_stack([np.interp(t_s, t_s[kept], errors.grid_error_m[kept, axis])
+                               for axis in range(errors.grid_error_m.shape[1])])
+    return replace(errors, grid_error_m=np.where(spikes[:, None], bridged, errors.grid_error_m),
+                   grid_learnable=errors.grid_learnable & kept)
 
 
 def learning_weight(learnable: np.ndarray, taper_samples: int) -> np.ndarray:
