@@ -280,8 +280,22 @@ STATE_TOPICS = [(actuator_state_topic(actuator), JointState)
 
 def run_words(rig):
     """Return the run owner's words the probe has heard, as (arrival s, RunMessage)."""
-    return [(t, RunMessage.from_pairs(pairs_of(m)))
-            for t, m in rig.received[RUN_TOPIC]]
+    words = rig.__dict__.setdefault('run_words', [])
+    received = rig.received[RUN_TOPIC]
+    # Each word is read once: the tests poll this every 20 ms during a run.
+    words.extend((t, RunMessage.from_pairs(pairs_of(m)))
+                 for t, m in received[len(words):len(received)])
+    return words
+
+
+def run_changes(rig, event_s) -> str:
+    """Return the run owner's changes of word, one line each, timed from ``event_s``."""
+    lines, last = [], None
+    for t, word in run_words(rig):
+        if (word.state, word.reason) != last:
+            last = (word.state, word.reason)
+            lines.append(f'{t - event_s:+.3f} s: {word.state.value} {word.reason}')
+    return '\n'.join(lines)
 
 
 def states_after(rig, actuator, after_s):
@@ -296,9 +310,42 @@ def stopped_at(states, after_s):
     return later[last_moving + 1][0] if last_moving + 1 < len(later) else None
 
 
-def start_and_run_for(rig, seconds):
-    assert rig.call('/trajectory_generator/start').success, rig.problems()
-    rig.spin_until(lambda: False, seconds)
+ENDED = (RunState.FINISHED, RunState.STOPPED, RunState.ABORTED)
+
+
+def start_and_run_for(rig, seconds, attempts=3):
+    """
+    Start a run and return once it has been running for ``seconds``.
+
+    A stall of this shared 2-core host can end a run by itself, as it would on a rig: a
+    loop late by a few hundred ms leaves its path tolerance, or misses the owner's word
+    for its watchdog time. The tests built on this one are about what ends a run in
+    progress, so a run the host ended first is started afresh, ``attempts`` times at most.
+    """
+    first_s = time.time()
+    for _ in range(attempts):
+        asked_s = time.time()
+        assert rig.call('/trajectory_generator/start').success, rig.problems()
+
+        def this_run():
+            return next((w.trajectory_stamp_ns for t, w in run_words(rig)
+                         if t > asked_s and w.state is RunState.RUNNING), None)
+
+        assert rig.spin_until(lambda: this_run() is not None, 5.0), run_changes(rig, asked_s)
+        stamp_ns = this_run()
+
+        def ended():
+            return next((w for _, w in run_words(rig)
+                         if w.trajectory_stamp_ns == stamp_ns and w.state in ENDED), None)
+
+        rig.spin_until(lambda: ended() is not None, seconds)
+        word = ended()
+        if word is None:
+            return
+        print(f'the run ended before the test acted ({word.state.value}: {word.reason}); '
+              'starting another')
+    raise AssertionError(f'{attempts} runs ended by themselves:\n{run_changes(rig, first_s)}\n'
+                         + rig.problems())
 
 
 def assert_both_move_then_stop_by(rig, event_s, allowance_s, hold_s=1.0):
@@ -308,13 +355,16 @@ def assert_both_move_then_stop_by(rig, event_s, allowance_s, hold_s=1.0):
         for a in ('actuator_1', 'actuator_2')), 20.0), 'states stopped:\n' + rig.problems()
     for actuator in ('actuator_1', 'actuator_2'):
         before = [v for t, v in states_after(rig, actuator, event_s - 0.5) if t < event_s]
-        assert max(abs(v) for v in before) > 1e-4, f'{actuator} was not moving'
+        assert max(abs(v) for v in before) > 1e-4, \
+            f'{actuator} was not moving; run words:\n{run_changes(rig, event_s)}\n' \
+            + rig.problems()
         states = states_after(rig, actuator, event_s)
         zero_s = stopped_at(states, event_s)
         assert zero_s is not None, f'{actuator} never stopped: {states[-10:]}'
         print(f'{actuator}: commanded velocity zero {1e3 * (zero_s - event_s):.0f} ms after '
               'the event')
-        assert zero_s - event_s <= allowance_s, actuator
+        assert zero_s - event_s <= allowance_s, \
+            f'{actuator}: {zero_s - event_s:.3f} s > {allowance_s:.3f} s\n' + rig.problems()
         # Held at zero since, with the drive still reporting (not a dead loop).
         assert [v for t, v in states if t > zero_s] and all(
             v == 0.0 for t, v in states if t > zero_s), actuator
