@@ -81,7 +81,12 @@ def test_stroke_limit_is_refused_before_anything_moves(tmp_path):
 
 
 def test_refuses_while_another_node_commands(rig, tmp_path):
-    publisher = rig['node'].create_publisher(JointState, '/flexure/actuator_setpoints', 10)
+    # The other commander is a node of its own that no executor spins: destroying a
+    # publisher of the probe while its executor builds a wait set in another thread
+    # kills that thread (rclpy raises InvalidHandle on the publisher's event handler),
+    # and every later test here would wait for states that never come.
+    commander = rclpy.create_node('other_commander', context=rig['node'].context)
+    commander.create_publisher(JointState, '/flexure/actuator_setpoints', 10)
     try:
         start = len(rig['states'])
         code, output = characterise(tmp_path)
@@ -94,7 +99,7 @@ def test_refuses_while_another_node_commands(rig, tmp_path):
         positions = [m.position[0] for m in rig['states'][start:]]
         assert positions and max(positions) - min(positions) < 2e-4
     finally:
-        rig['node'].destroy_publisher(publisher)
+        commander.destroy_node()
 
 
 def points_so_far(csv_path) -> int:
