@@ -16,7 +16,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.bag import BagReader
-from flexure_ctrl.interface import RECORDER_INTAKE
+from flexure_ctrl.interface import INTAKE_SUFFIX, RECORDER_INTAKE
 from flexure_ctrl.nodes.player import Player, PlayerConfigError
 from flexure_ctrl.nodes.recorder import Recorder
 from geometry_msgs.msg import PointStamped, PoseStamped
@@ -309,6 +309,27 @@ def test_stopping_takes_the_messages_still_waiting_in_the_queues(tmp_path, ros):
         recorder.destroy_node()
     xs = [d.point.x for _, d in BagReader(recorder.bag_path).decoded()]
     assert xs == [float(i) for i in range(40)]
+
+
+def test_a_recorder_interrupted_while_starting_leaves_no_node_and_a_complete_bag(
+        tmp_path, ros, monkeypatch):
+    ros_ = ros()
+    name = 'interrupted_recorder'
+
+    def interrupted(recorder):
+        # Ctrl-C during the first discovery, once the intake node is in the graph.
+        assert f'{name}{INTAKE_SUFFIX}' in recorder.get_node_names()
+        raise KeyboardInterrupt
+    monkeypatch.setattr(Recorder, 'discover', interrupted)
+    with pytest.raises(KeyboardInterrupt) as refused:
+        Recorder(name, context=ros_.context, parameter_overrides=[
+            RclpyParameter('bag_dir', value=str(tmp_path)),
+            RclpyParameter('bag_name', value='interrupted'),
+            RclpyParameter('topics', value=[POINTS])])
+    # Gone while the traceback still holds the half-built recorder.
+    names = ros_.node.get_node_names()
+    assert name not in names and f'{name}{INTAKE_SUFFIX}' not in names, refused
+    assert BagReader(tmp_path / 'interrupted').complete
 
 
 def test_sigkill_leaves_the_earlier_messages_readable(tmp_path, ros):

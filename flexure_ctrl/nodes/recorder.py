@@ -99,15 +99,24 @@ class Recorder(Node):
         self._topic_subscriptions: List[Tuple[str, Subscription]] = []
         self._skipped: Set[str] = set()
         self._stopped = False
-        self.get_logger().info(f'bag: {self.bag_path}')
-        # Steady time: the polling must not jump with the wall clock.
-        self.discovery_timer = self.create_timer(
-            self.get_parameter('discovery_period_s').value, self.discover,
-            clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.take_timer = self.create_timer(
-            self.get_parameter('take_period_s').value, self.take_all,
-            clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.discover()
+        try:
+            self.get_logger().info(f'bag: {self.bag_path}')
+            # Steady time: the polling must not jump with the wall clock.
+            self.discovery_timer = self.create_timer(
+                self.get_parameter('discovery_period_s').value, self.discover,
+                clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self.take_timer = self.create_timer(
+                self.get_parameter('take_period_s').value, self.take_all,
+                clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self.discover()
+        except BaseException:
+            # (Ctrl-C during the first discovery, say.) The decorator destroys this node
+            # only: the intake node would stay in the graph with its subscriptions, and
+            # the bag would stay open.
+            self._stopped = True
+            self.writer.close()
+            self._intake.destroy_node()
+            raise
 
     @property
     def recording(self) -> Dict[str, str]:
