@@ -7,14 +7,22 @@ import subprocess
 import sys
 import time
 
+from flexure_ctrl.cli import ros_probe
 from flexure_ctrl.cli.launcher import free_port, InGraph, Launcher, Listening
 from flexure_ctrl.cli.main import main
+from flexure_ctrl.cli.ros_probe import RosProbe
 from flexure_ctrl.cli.up_command import SIM_BACKGROUND_NICENESS
 from flexure_ctrl.core.design import load_design
 from flexure_ctrl.core.kinematics import TwoLinkArm
-from helpers import wait_for
+from flexure_ctrl.nodes.common import destroy_rcl_node
+from helpers import spin_in_thread, wait_for
+from lifecycle_msgs.srv import ChangeState
 import numpy as np
 import pytest
+from rclpy.client import Client
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleNode
+from rclpy.task import Future
 
 
 def read_csv(path):
@@ -177,6 +185,33 @@ def test_a_node_whose_name_shows_twice_once_up_is_not_up():
         assert not launcher.bring_up(
             [('twin', twins(2), InGraph('twin', publishers=('/flexure/twin',)))])
         assert any('a node named /twin already runs' in line for line in launcher.lines)
+
+
+def test_a_transition_whose_answer_is_lost_is_seen_done_in_the_nodes_state(
+        context, monkeypatch):
+    # Fast DDS drops a service's answer when the client's reader is not matched in time
+    # ("failed to send response (timeout)"). The node went on to inactive, then active:
+    # its ~/get_state says so, and the launcher must not wait out its time-out.
+    node = LifecycleNode('lost_answers', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    spin_in_thread(executor)
+    real_call = Client.call_async
+
+    def answer_lost(client, request):
+        future = real_call(client, request)
+        return Future() if client.srv_type is ChangeState else future
+    monkeypatch.setattr(Client, 'call_async', answer_lost)
+    monkeypatch.setattr(ros_probe, 'STATE_CHECK_AFTER_S', 0.2)
+    monkeypatch.setattr(ros_probe, 'TRANSITION_TIMEOUT_S', 10.0)
+    probe = RosProbe()
+    try:
+        assert probe.bring_up('lost_answers', gone=lambda: False) == ''
+        assert node._state_machine.current_state[1] == 'active'
+    finally:
+        probe.shutdown()
+        executor.shutdown()
+        destroy_rcl_node(node)
 
 
 def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_path, capsys):

@@ -13,8 +13,8 @@ import threading
 import time
 from typing import Callable, Optional
 
-from lifecycle_msgs.msg import Transition
-from lifecycle_msgs.srv import ChangeState
+from lifecycle_msgs.msg import State, Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -27,8 +27,13 @@ SERVICE_TIMEOUT_S = 60.0
 # (10 s by default), each commissioning step has its SDO timeout.
 TRANSITION_TIMEOUT_S = 60.0
 TRANSITION_SLICE_S = 0.1
-TRANSITIONS = ((Transition.TRANSITION_CONFIGURE, 'configure'),
-               (Transition.TRANSITION_ACTIVATE, 'activate'))
+# Each transition and the state it ends in.
+TRANSITIONS = ((Transition.TRANSITION_CONFIGURE, 'configure', State.PRIMARY_STATE_INACTIVE),
+               (Transition.TRANSITION_ACTIVATE, 'activate', State.PRIMARY_STATE_ACTIVE))
+# A transition unanswered this long (s) is checked with ~/get_state, then every period:
+# Fast DDS drops a service's response when the client's response reader is not matched
+# in time ("failed to send response (timeout)"), which a loaded host can make happen.
+STATE_CHECK_AFTER_S = 3.0
 
 
 def already_running(node_name: str) -> str:
@@ -106,6 +111,7 @@ class RosProbe:
         self._ensure_started()
         with self._lock:
             client = self._node.create_client(ChangeState, f'/{node_name}/change_state')
+            state_client = self._node.create_client(GetState, f'/{node_name}/get_state')
         try:
             waited_s = 0.0
             while not client.wait_for_service(timeout_sec=0.2):
@@ -119,26 +125,40 @@ class RosProbe:
             # request and never answer, or worse, answer for another process.
             if self.count_nodes(node_name) > 1:
                 return already_running(node_name)
-            for transition_id, label in TRANSITIONS:
+            for transition_id, label, goal_id in TRANSITIONS:
                 request = ChangeState.Request()
                 request.transition.id = transition_id
                 future = client.call_async(request)
-                deadline = time.monotonic() + TRANSITION_TIMEOUT_S
+                asked = time.monotonic()
+                deadline = asked + TRANSITION_TIMEOUT_S
+                next_check = asked + STATE_CHECK_AFTER_S
+                state = None
+                reached = False
                 # In slices: a stop of the launcher ends the wait within one.
                 while not future.done() and time.monotonic() < deadline:
                     if gone():
                         return 'stopped'
                     with self._lock:
                         self._executor.spin_until_future_complete(future, TRANSITION_SLICE_S)
-                if not future.done():
+                    if state is not None and state.done():
+                        reached = state.result().current_state.id == goal_id
+                        state = None
+                        if reached:
+                            break  # done, its answer lost on the way
+                    if time.monotonic() > next_check:
+                        # (A question unanswered since the last check was lost too.)
+                        next_check = time.monotonic() + STATE_CHECK_AFTER_S
+                        state = state_client.call_async(GetState.Request())
+                if not (reached or future.done()):
                     return f'{label} of {node_name} did not end within ' \
                            f'{TRANSITION_TIMEOUT_S:.0f} s'
-                if not future.result().success:
+                if not reached and not future.result().success:
                     return f'{label} of {node_name} failed (its log above says why)'
             return ''
         finally:
             with self._lock:
                 self._node.destroy_client(client)
+                self._node.destroy_client(state_client)
 
     def shutdown(self) -> None:
         """Destroy the launcher's node; idempotent."""
