@@ -333,14 +333,20 @@ ATTEMPTS = 3
 
 def start_run(rig):
     """Start a run; return when it was asked for (s) and its trajectory stamp (ns)."""
+    client = rig.node.create_client(Trigger, '/trajectory_generator/start')
+    assert rig.spin_until(client.service_is_ready, 30.0), 'no /trajectory_generator/start'
     asked_s = time.time()
-    assert rig.call('/trajectory_generator/start').success, rig.problems()
+    future = client.call_async(Trigger.Request())
 
     def this_run():
         return next((w.trajectory_stamp_ns for t, w in run_words(rig)
                      if t > asked_s and w.state is RunState.RUNNING), None)
 
-    assert rig.spin_until(lambda: this_run() is not None, 5.0), run_changes(rig, asked_s)
+    # The owner's word RUNNING is the signal: a loaded host can lose the call's answer.
+    assert rig.spin_until(lambda: this_run() is not None or (
+        future.done() and not future.result().success), 20.0), \
+        run_changes(rig, asked_s) + '\n' + rig.problems()
+    assert this_run() is not None, future.result().message
     return asked_s, this_run()
 
 
