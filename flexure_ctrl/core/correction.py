@@ -47,6 +47,11 @@ DEFAULT_SPIKE_THRESHOLD = 6.0
 # not share still reaches the next run only through Q's 1 Hz band.
 DEFAULT_LATER_GAIN = 0.8
 DEFAULT_SPIKE_MARGIN_S = 0.05
+# A run is worse than the best so far when its max error exceeds the best's by more than
+# this many scatters (robust sigma above Q's band): on the simulated plants the floor's
+# max, two runs of one command apart, was 4 to 12 of them; its RMS was 1 to 1.8.
+DEFAULT_MAX_ALLOWANCE = 6.0
+DEFAULT_RMS_ALLOWANCE = 0.5
 # Median absolute deviation to the standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
 
@@ -291,23 +296,24 @@ def unrepeated_spikes(errors: 'PathErrors', previous: 'PathErrors',
 
 def without_spikes(errors: 'PathErrors', spikes: np.ndarray) -> 'PathErrors':
     """
-    Return ``errors`` with the grid samples inside ``spikes`` left out of learning.
+    Return ``errors`` with the grid error inside ``spikes`` bridged across them.
 
-    They count as a long tracker gap does: the update there is zero, ramping in at the
-    edges, so the command keeps its value where the run was disturbed. For the filter
-    Q the error inside is bridged linearly between the samples either side, so that
-    the disturbance does not leak into its neighbourhood either.
+    Inside a spike the error is replaced by the straight line between the samples either
+    side, for the filter Q and for the update alike: the command there moves with its
+    neighbours, by what the run shows around the disturbance, and the disturbance itself
+    is not learned. (Leaving the command unchanged there instead cuts a notch the depth
+    of the whole update into it: a step the loops then chase with a velocity spike.)
     """
     spikes = np.asarray(spikes, dtype=bool)
     if not spikes.any():
         return errors
     if spikes.all():
+        # Nothing left to bridge from: the run teaches nothing.
         return replace(errors, grid_learnable=np.zeros_like(errors.grid_learnable))
     t_s, kept = errors.grid_t_s, ~spikes
     bridged = np.column_stack([np.interp(t_s, t_s[kept], errors.grid_error_m[kept, axis])
                                for axis in range(errors.grid_error_m.shape[1])])
-    return replace(errors, grid_error_m=np.where(spikes[:, None], bridged, errors.grid_error_m),
-                   grid_learnable=errors.grid_learnable & kept)
+    return replace(errors, grid_error_m=np.where(spikes[:, None], bridged, errors.grid_error_m))
 
 
 def learning_weight(learnable: np.ndarray, taper_samples: int) -> np.ndarray:
@@ -377,17 +383,19 @@ def _on_path_exactly(errors: PathErrors, values: np.ndarray) -> Tuple[np.ndarray
 @dataclass(eq=False)
 class Iteration:
     """
-    One run of the learning: its errors, their maxima, and its unrepeated spikes.
+    One run of the learning: its errors, their maxima and RMS, and its unrepeated spikes.
 
-    ``spikes`` masks the grid samples left out of learning (:func:`unrepeated_spikes`);
-    ``steady_rms_error_m`` is the RMS error outside them (m, x and y), which scores the
-    run.
+    ``spikes`` masks the grid samples whose error is bridged, not learned
+    (:func:`unrepeated_spikes`); ``scatter_m`` is the run's robust standard deviation
+    above Q's cutoff (m, x and y, :meth:`PathErrors.noise_m`): what one run does not
+    share with the next, the scale by which two runs are told apart.
     """
 
     errors: PathErrors
     max_abs_error_m: np.ndarray
+    rms_error_m: np.ndarray
     spikes: np.ndarray
-    steady_rms_error_m: np.ndarray
+    scatter_m: np.ndarray
 
     def spike_seconds(self) -> float:
         """Return how long (s of path time) the run's error was left out of learning."""
@@ -397,15 +405,17 @@ class Iteration:
 
 class IterativeCorrector:
     """
-    Learn the command path run after run, reducing the gain when the error stalls.
+    Learn the command path run after run; step back when a run came out worse.
 
-    Each run is scored by its RMS errors relative to the first run's (x and y weighted
-    alike), outside the spikes it did not share with the run before: a maximum is set by
-    one host stall the spike test did not catch, and would stop learning that still
-    gains everywhere else. When a
-    run is not better than the best so far by ``stall_ratio``, the gain is multiplied by
-    ``gain_shrink`` and the next command learns from the best run instead; below
-    ``min_gain`` learning stops.
+    After each run it finds the best run so far (the lowest sum of max and RMS errors,
+    each relative to the first run's, x and y) and compares the latest with it, on the
+    max and on the RMS error in both axes. The latest is *worse* when on some axis its
+    max exceeds the best's by more than ``max_allowance`` scatters, or its RMS by more
+    than ``rms_allowance`` scatters (the scatter: the larger of the two runs'
+    :attr:`Iteration.scatter_m`; two runs of one command differ by about that much).
+    Then the next command steps back: it is learned from the best run (its command plus
+    its error) with the gain times ``gain_shrink``, and :attr:`note` says so. Otherwise
+    it is learned from the latest run. Below ``min_gain`` learning stops.
 
     :param gain: learning gain ``gamma`` of the first correction (1: the paper's Eq. 8).
     :param later_gain: gain of the corrections after the first. Below 1, each run's
@@ -414,17 +424,18 @@ class IterativeCorrector:
         ``(1 - later_gain)^k``.
     :param cutoff_hz: cutoff of ``Q`` (Hz).
     :param min_gain: learning stops when the gain falls below this.
-    :param gain_shrink: factor applied to the gain when the error stops falling.
-    :param stall_ratio: a run must score below ``stall_ratio`` times the best so far to
-        count as improving.
+    :param gain_shrink: factor applied to the gain at each step back.
+    :param max_allowance: scatters by which a run's max may exceed the best's.
+    :param rms_allowance: scatters by which a run's RMS may exceed the best's.
     :param spike_threshold: from the second run on, error spikes that the run before did
         not have (:func:`unrepeated_spikes`, this many robust standard deviations) are
-        neither learned nor counted in the score; None learns everything.
+        bridged, not learned; None learns everything.
     """
 
     def __init__(self, gain: float = 1.0, later_gain: float = DEFAULT_LATER_GAIN,
                  cutoff_hz: float = DEFAULT_CUTOFF_HZ, min_gain: float = 0.1,
-                 gain_shrink: float = 0.5, stall_ratio: float = 0.95,
+                 gain_shrink: float = 0.5, max_allowance: float = DEFAULT_MAX_ALLOWANCE,
+                 rms_allowance: float = DEFAULT_RMS_ALLOWANCE,
                  spike_threshold: Optional[float] = DEFAULT_SPIKE_THRESHOLD) -> None:
         for name, value in (('gain', gain), ('later_gain', later_gain)):
             if not 0.0 < value <= 2.0:
@@ -432,11 +443,15 @@ class IterativeCorrector:
         self.later_gain = float(later_gain)
         if not 0.0 < gain_shrink < 1.0:
             raise CorrectionError(f'gain_shrink must be in (0, 1), got {gain_shrink}')
+        for name, value in (('max_allowance', max_allowance), ('rms_allowance', rms_allowance)):
+            if not value >= 0.0:
+                raise CorrectionError(f'{name} must be >= 0, got {value}')
         self.gain = float(gain)
         self.cutoff_hz = cutoff_hz
         self.min_gain = float(min_gain)
         self.gain_shrink = float(gain_shrink)
-        self.stall_ratio = float(stall_ratio)
+        self.max_allowance = float(max_allowance)
+        self.rms_allowance = float(rms_allowance)
         if spike_threshold is not None and not spike_threshold > 0.0:
             raise CorrectionError(f'spike_threshold must be > 0 (or None), got {spike_threshold}')
         self.spike_threshold = spike_threshold
@@ -444,8 +459,29 @@ class IterativeCorrector:
         self.note = ''
 
     def _score(self, iteration: Iteration) -> float:
-        reference = np.maximum(self.iterations[0].steady_rms_error_m, 1e-12)
-        return float(np.sum(iteration.steady_rms_error_m / reference))
+        first = self.iterations[0]
+        return float(np.sum(iteration.max_abs_error_m / np.maximum(first.max_abs_error_m, 1e-12))
+                     + np.sum(iteration.rms_error_m / np.maximum(first.rms_error_m, 1e-12)))
+
+    def best(self) -> Iteration:
+        """The best run so far (see the class); :raises CorrectionError: if there is none."""
+        if not self.iterations:
+            raise CorrectionError('no run was added')
+        return min(self.iterations, key=self._score)
+
+    def worse_than(self, run: Iteration, best: Iteration) -> str:
+        """Why ``run`` is worse than ``best`` beyond the scatter (one line), or ''."""
+        scatter = np.maximum(run.scatter_m, best.scatter_m)
+        for axis, name in enumerate('xy'):
+            for what, mine, theirs, allowance in (
+                    ('max', run.max_abs_error_m, best.max_abs_error_m, self.max_allowance),
+                    ('rms', run.rms_error_m, best.rms_error_m, self.rms_allowance)):
+                limit = theirs[axis] + allowance * scatter[axis]
+                if mine[axis] > limit:
+                    return (f'{what} |e_{name}| {mine[axis] * 1e3:.3f} mm > '
+                            f'{theirs[axis] * 1e3:.3f} mm + {allowance:g} x scatter '
+                            f'{scatter[axis] * 1e3:.3f} mm')
+        return ''
 
     def add_run(self, errors: PathErrors) -> None:
         """Add the errors of the run made with the last proposed command."""
@@ -453,13 +489,9 @@ class IterativeCorrector:
         if self.iterations and self.spike_threshold is not None:
             spikes = unrepeated_spikes(errors, self.iterations[-1].errors,
                                        threshold=self.spike_threshold)
-        # The tracker samples whose nearest grid sample lies in a spike.
-        nearest = np.clip(np.rint((errors.sample_t_s - errors.grid_t_s[0])
-                                  * errors.grid_rate_hz).astype(int), 0, len(spikes) - 1)
-        steady = ~spikes[nearest]
-        steady_rms = (np.sqrt(np.mean(errors.sample_error_m[steady] ** 2, axis=0))
-                      if steady.any() else errors.rms_error_m())
-        self.iterations.append(Iteration(errors, errors.max_abs_error_m(), spikes, steady_rms))
+        scatter = (errors.noise_m(self.cutoff_hz) if self.cutoff_hz else errors.noise_m())
+        self.iterations.append(Iteration(errors, errors.max_abs_error_m(),
+                                         errors.rms_error_m(), spikes, scatter))
 
     def next_command(self) -> Optional[CommandPath]:
         """
@@ -470,21 +502,23 @@ class IterativeCorrector:
         if not self.iterations:
             raise CorrectionError('add a run before asking for the next command')
         latest = self.iterations[-1]
-        earlier = self.iterations[:-1]
         source = latest
+        self.note = ''
         if len(self.iterations) == 2:
             self.gain = min(self.gain, self.later_gain)
-        if earlier:
-            best = min(earlier, key=self._score)
-            if self._score(latest) >= self.stall_ratio * self._score(best):
+        if len(self.iterations) > 1:
+            best = self.best()
+            why = '' if best is latest else self.worse_than(latest, best)
+            if why:
                 self.gain *= self.gain_shrink
-                source = best if self._score(best) < self._score(latest) else latest
-                self.note = (f'error stopped falling: gain reduced to {self.gain:.3g}, '
-                             f'learning from iteration {self.iterations.index(source)}')
-            else:
-                self.note = ''
+                source = best
+                self.note = (f'run {len(self.iterations) - 1} is worse than run '
+                             f'{self.iterations.index(best)} ({why}): stepping back to run '
+                             f'{self.iterations.index(best)}\'s command, learning from it with '
+                             f'gain {self.gain:.3g}')
         if self.gain < self.min_gain:
-            self.note = f'learning stopped: gain {self.gain:.3g} below {self.min_gain:.3g}'
+            self.note += ('; ' if self.note else '') + (
+                f'learning stopped: gain {self.gain:.3g} below {self.min_gain:.3g}')
             return None
         return corrected_command(without_spikes(source.errors, source.spikes), self.gain,
                                  self.cutoff_hz)
