@@ -309,10 +309,12 @@ def run(arguments: argparse.Namespace) -> int:
             command = corrector.next_command()
             if command is None:
                 progress.line(f'[demo] {corrector.note}')
+                row['note'] = corrector.note
                 break
             if corrector.note:
                 progress.line(f'[demo] {corrector.note}')
             row['gain'] = corrector.gain
+            row['note'] = corrector.note
             command_file = command.write_csv(out / f'command_{index + 1}.csv')
             operator.set_correction_file(str(command_file.resolve()))
         if arguments.repeat_last:
