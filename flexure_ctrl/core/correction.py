@@ -504,7 +504,7 @@ class IterativeCorrector:
         latest = self.iterations[-1]
         source = latest
         self.note = ''
-        if len(self.iterations) == 2:
+        if len(self.iterations) > 1:
             self.gain = min(self.gain, self.later_gain)
         if len(self.iterations) > 1:
             best = self.best()
