@@ -93,11 +93,12 @@ def verdict(design: str, summary: dict, max_ratio: float, rms_ratio: float) -> d
     paper = PAPER_TABLE_1.get(design, {'reduction': (0, 0)})['reduction']
     once = tuple(100.0 * (1.0 - later / first) for first, later in zip(maxima[0], maxima[1]))
     ratios = tuple(v / max(f, 1e-12) for v, f in zip(maxima[-1] + last_rms, floor_max + floor_rms))
-    rises = [max(b - a for a, b in zip(maxima[k - 1], maxima[k])) for k in range(2, len(rows))]
+    # How far each correction after the first raised the max above the one before, per axis.
+    rises = [tuple(b - a for a, b in zip(maxima[k - 1], maxima[k])) for k in range(2, len(rows))]
     checks = {
         'once': once[0] >= paper[0] and once[1] >= paper[1],
         'floor': all(r <= max_ratio for r in ratios[:2]) and all(r <= rms_ratio for r in ratios[2:]),
-        'never_worse': all(rise <= min(floor_max) for rise in rises),
+        'never_worse': all(r <= f for rise in rises for r, f in zip(rise, floor_max)),
     }
     return {'design': design, 'paper': paper, 'once_percent': once, 'maxima_mm': maxima,
             'last_rms_mm': last_rms, 'floor_max_mm': floor_max, 'floor_rms_mm': floor_rms,

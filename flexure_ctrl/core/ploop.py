@@ -210,6 +210,92 @@ class StreamHold:
         return self.velocity_m_s
 
 
+class BacklashTakeUp:
+    """
+    Velocity feedforward that carries a lead screw's nut across its backlash on reversal.
+
+    The loop reads the potentiometer on the rod, after the backlash. Where the setpoint
+    reverses, the nut must first cross the dead band (``backlash_m`` wide) while the rod
+    stands still; the proportional term only acts once that shows as error, so every
+    reversal leaves a short, sharp error at the end point. This adds, when the setpoint
+    velocity changes sign, a velocity pulse of ``backlash_m / take_up_s`` for
+    ``take_up_s``: the nut's crossing, fed forward. The pulse's integral is the
+    backlash whatever the cycle times (the last cycle of a pulse is shortened).
+
+    The learning measures each drive's backlash from its recorded runs
+    (:mod:`flexure_ctrl.core.backlash`) and sets it for the next run. Until the setpoint
+    has moved one way (the start of a run), the nut's side is unknown and nothing is
+    added. A setpoint velocity within ``+-min_speed_m_s`` keeps the side,
+    except that a held setpoint the loop itself drives to (a step, such as a run's
+    lead-in to its first point: faster than ``push_speed_m_s``) puts the nut on the side
+    of that drive, so the path's first move away from it is taken up if it reverses.
+
+    :param backlash_m: width of the dead band (m), 0 or more; 0 turns it off.
+    :param take_up_s: duration of the pulse (s), > 0.
+    :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0.
+    :param push_speed_m_s: command speed (m/s) towards a held setpoint that counts as
+        pushing the nut to one side, > 0; above the loop's dither on potentiometer noise.
+    :raises LoopConfigError: a value out of range.
+    """
+
+    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', 'push_speed_m_s', '_side',
+                 '_remaining_m')
+
+    def __init__(self, backlash_m: float, take_up_s: float = 0.02,
+                 min_speed_m_s: float = 1e-4, push_speed_m_s: float = 2e-3) -> None:
+        _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
+                 f'backlash_m must be finite and >= 0, got {backlash_m!r}')
+        _require(math.isfinite(take_up_s) and take_up_s > 0.0,
+                 f'take_up_s must be finite and > 0, got {take_up_s!r}')
+        _require(math.isfinite(min_speed_m_s) and min_speed_m_s > 0.0,
+                 f'min_speed_m_s must be finite and > 0, got {min_speed_m_s!r}')
+        self.backlash_m = float(backlash_m)
+        self.take_up_s = float(take_up_s)
+        _require(math.isfinite(push_speed_m_s) and push_speed_m_s > 0.0,
+                 f'push_speed_m_s must be finite and > 0, got {push_speed_m_s!r}')
+        self.min_speed_m_s = float(min_speed_m_s)
+        self.push_speed_m_s = float(push_speed_m_s)
+        self._side = 0
+        self._remaining_m = 0.0
+
+    def settle(self) -> None:
+        """Drop what is left of a pulse (a run starts); the nut keeps its side."""
+        self._remaining_m = 0.0
+
+    def velocity(self, setpoint_velocity_m_s: float, dt_s: float,
+                 last_command_m_s: float = 0.0) -> float:
+        """
+        Return the speed (m/s, signed) to add to this cycle's command, for ``dt_s`` (s).
+
+        :param last_command_m_s: the loop's previous velocity command (m/s).
+        """
+        if self.backlash_m == 0.0:
+            return 0.0
+        if setpoint_velocity_m_s > self.min_speed_m_s:
+            moving = 1
+        elif setpoint_velocity_m_s < -self.min_speed_m_s:
+            moving = -1
+        else:
+            moving = self._side
+            if self._remaining_m == 0.0 and abs(last_command_m_s) > self.push_speed_m_s:
+                # The loop drives to a held setpoint: the nut pushes from that side now.
+                self._side = moving = 1 if last_command_m_s > 0.0 else -1
+        if moving != self._side:
+            # A reversal: the nut crosses the whole band (the first move of a run: none).
+            self._remaining_m = moving * self.backlash_m if self._side else 0.0
+            self._side = moving
+        if self._remaining_m == 0.0 or dt_s <= 0.0:
+            return 0.0
+        pulse_m_s = math.copysign(self.backlash_m / self.take_up_s, self._remaining_m)
+        step_m = pulse_m_s * dt_s
+        if abs(step_m) >= abs(self._remaining_m):
+            velocity_m_s = self._remaining_m / dt_s
+            self._remaining_m = 0.0
+            return velocity_m_s
+        self._remaining_m -= step_m
+        return pulse_m_s
+
+
 class ActuatorController:
     """
     One actuator loop's cycle, with time passed in: what to follow, the law, the stops.
@@ -237,6 +323,8 @@ class ActuatorController:
         was taken (its age passed to :meth:`step`) rather than of now.
     :param max_reading_age_s: a reading older than this (a clock step, not a delay) is
         compared with now.
+    :param take_up: carries the nut across the backlash where a run's plan reverses
+        (:class:`BacklashTakeUp`); None: no backlash is taken up.
     """
 
     __slots__ = ('loop', '_timeout_ns', 'path_tolerance_m', '_compensate', '_max_reading_ns',
@@ -244,13 +332,14 @@ class ActuatorController:
                  'trajectory_stamp_ns', '_sampler', '_loaded_sampler', '_loaded_stamp_ns',
                  '_last_run_ns', '_last_step_ns', 'stream_ignored', 'stream_stale',
                  '_ended_stamp_ns', '_run_ended_ns',
-                 'max_deviation_m')
+                 'max_deviation_m', 'take_up')
 
     _MAX_DT_S = 0.02
 
     def __init__(self, loop: ProportionalLoop, watchdog_timeout_s: float,
                  stream_hold_max_age_s: float, path_tolerance_m: float,
-                 compensate_reading_age: bool = True, max_reading_age_s: float = 1.0) -> None:
+                 compensate_reading_age: bool = True, max_reading_age_s: float = 1.0,
+                 take_up: Optional[BacklashTakeUp] = None) -> None:
         _require(math.isfinite(watchdog_timeout_s) and watchdog_timeout_s > 0.0,
                  f'watchdog_timeout_s must be finite and > 0, got {watchdog_timeout_s!r}')
         _require(math.isfinite(path_tolerance_m) and path_tolerance_m > 0.0,
@@ -278,6 +367,7 @@ class ActuatorController:
         self.stream_ignored = 0
         self.stream_stale = 0
         self.max_deviation_m = 0.0
+        self.take_up = BacklashTakeUp(0.0) if take_up is None else take_up
 
     @property
     def loaded_stamp_ns(self) -> int:
@@ -313,6 +403,7 @@ class ActuatorController:
             self.following = Following.RUN
             self.problem = self.stop_reason = ''
             self.max_deviation_m = 0.0
+            self.take_up.settle()
 
     def on_stream_setpoint(self, position_m: float, velocity_m_s: float, made_ns: int,
                            now_ns: int) -> bool:
@@ -409,8 +500,13 @@ class ActuatorController:
                                   f'{(reading_ns - start_ns) / _NS_PER_S:.3f} s (tolerance '
                                   f'{self.path_tolerance_m * 1e3:.3f} mm)', True)
                         return self._ramp(dt_s)
-                self.output_m_s = self.loop.command(planned_m, velocity_m_s, measured_m)
-                return self.output_m_s
+                output = self.loop.command(planned_m, velocity_m_s, measured_m)
+                if not self.loop.stroke_guarded:
+                    output += self.take_up.velocity(velocity_m_s, dt_s, self.output_m_s)
+                    limit = self.loop.limits.max_speed_m_s
+                    output = min(max(output, -limit), limit)
+                self.output_m_s = output
+                return output
         elif following is Following.STREAM:
             hold = self.hold
             if now_ns - hold.stamp_ns <= self._timeout_ns:

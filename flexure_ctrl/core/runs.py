@@ -14,8 +14,9 @@ from typing import Dict, List, Tuple, Union
 from flexure_ctrl.core.bag import BagReader
 from flexure_ctrl.core.correction import NS_PER_S, RecordedRun
 from flexure_ctrl.core.errors import CorrectionError
-from flexure_ctrl.interface import (COMMAND_TOPIC, CORRECTION_TOPICS, DEMAND_PATH_TOPIC,
-                                    DEMAND_TOPIC, END_TOPIC)
+from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic, COMMAND_TOPIC,
+                                    CORRECTION_TOPICS, DEMAND_PATH_TOPIC, DEMAND_TOPIC,
+                                    END_TOPIC)
 import numpy as np
 
 # A pause this long in the demand separates two runs (the demand runs at 100 Hz).
@@ -101,3 +102,33 @@ def load_runs(bag_path: Union[str, Path]) -> List[RecordedRun]:
 def load_last_run(bag_path: Union[str, Path]) -> RecordedRun:
     """Read the last run of the path in a bag (see :func:`load_runs`)."""
     return load_runs(bag_path)[-1]
+
+
+def load_actuator_states(bag_path: Union[str, Path], run: RecordedRun
+                         ) -> Dict[str, Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """
+    Read each loop's cycles during ``run`` from a bag: what the backlash fit needs.
+
+    :returns: per actuator with a recorded state stream, ``(t_s, position_m,
+        velocity_m_s)``: path time (s), the potentiometer reading (m) and the velocity
+        command (m/s) of each cycle within the run's demand stream.
+    """
+    reader = BagReader(bag_path)
+    topics = {actuator_state_topic(name): name for name in ACTUATOR_NAMES}
+    present = [topic for topic in topics if topic in reader.topics()]
+    first_ns, last_ns = int(run.demand_t_ns[0]), int(run.demand_t_ns[-1])
+    rows: Dict[str, List[Tuple[int, float, float]]] = {topics[t]: [] for t in present}
+    for message, decoded in reader.decoded(present):
+        stamp_ns = _stamp_ns(decoded.header)
+        if first_ns <= stamp_ns <= last_ns and decoded.position and decoded.velocity:
+            rows[topics[message.topic]].append(
+                (stamp_ns, float(decoded.position[0]), float(decoded.velocity[0])))
+    states = {}
+    for name, cycles in rows.items():
+        if len(cycles) < 2:
+            continue
+        cycles.sort()
+        table = np.array(cycles, dtype=float)
+        t_s = (np.array([c[0] for c in cycles], dtype=np.int64) - run.path_start_ns) / NS_PER_S
+        states[name] = (t_s, table[:, 1], table[:, 2])
+    return states

@@ -30,7 +30,8 @@ from typing import Optional, Tuple
 from flexure_ctrl.core.correction import NS_PER_S, RecordedRun
 from flexure_ctrl.core.design import Design
 from flexure_ctrl.core.inverse import InverseSolver
-from flexure_ctrl.core.ploop import ActuatorController, LoopLimits, ProportionalLoop
+from flexure_ctrl.core.ploop import (ActuatorController, BacklashTakeUp, LoopLimits,
+                                     ProportionalLoop)
 from flexure_ctrl.core.run import plan_path, RunMessage, RunState
 from flexure_ctrl.core.trajectory import Trajectory
 from flexure_ctrl.interface import ACTUATOR_NAMES
@@ -69,12 +70,14 @@ class SimulatedRun:
     :param loop_t_s: loop cycle times (s of path time), ``(L,)``.
     :param planned_m: each loop's plan at its cycle times, ``(L, 2)`` (m).
     :param measured_m: each loop's potentiometer reading at its cycle times, ``(L, 2)``.
+    :param commanded_m_s: each loop's velocity command at its cycle times, ``(L, 2)``.
     """
 
     run: RecordedRun
     loop_t_s: np.ndarray
     planned_m: np.ndarray
     measured_m: np.ndarray
+    commanded_m_s: np.ndarray
 
 
 def plant_parameters(config: dict) -> PlantParameters:
@@ -99,7 +102,8 @@ def screw_parameters(config: dict) -> LeadScrewParameters:
 def simulate_run(design: Design, config: dict, demand: Trajectory,
                  command: Optional[Trajectory] = None, seed: int = 0,
                  loop: LoopSettings = LoopSettings(),
-                 start_m: Optional[Tuple[float, float]] = None) -> SimulatedRun:
+                 start_m: Optional[Tuple[float, float]] = None,
+                 backlash_m: Tuple[float, float] = (0.0, 0.0)) -> SimulatedRun:
     """
     Run ``command`` (the demand when None) once on the simulated rig of ``config``.
 
@@ -111,6 +115,7 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
     :param loop: the loops' law and limits.
     :param start_m: both rods' positions (m) when the run is started; the plan's first
         point when None.
+    :param backlash_m: the backlash each loop takes up (:class:`BacklashTakeUp`), m.
     :raises flexure_ctrl.core.run.PlanError: the command path cannot be planned.
     """
     command = demand if command is None else command
@@ -127,11 +132,12 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                  for position in start]
     limits = LoopLimits(loop.max_speed_m_s, design.stroke_limit_m, loop.max_accel_m_s2)
     controllers = []
-    for name in ACTUATOR_NAMES:
+    for name, take_up_m in zip(ACTUATOR_NAMES, backlash_m):
         controller = ActuatorController(ProportionalLoop(loop.gain_per_s,
                                                          loop.velocity_feedforward, limits),
                                         watchdog_timeout_s=1.0, stream_hold_max_age_s=0.0,
-                                        path_tolerance_m=1.0)
+                                        path_tolerance_m=1.0,
+                                        take_up=BacklashTakeUp(take_up_m))
         controller.load_trajectory(plan.sampler(name), _PATH_START_NS)
         controller.on_run_message(RunMessage(RunState.RUNNING, _PATH_START_NS), 0)
         controllers.append(controller)
@@ -158,7 +164,7 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                 reading_m, read_s = readings[index]
                 age_ns = int(round((now_s - read_s) * NS_PER_S))
                 velocities[index] = controller.step(now_ns, reading_m, age_ns)
-                row += [controller.setpoint_m, reading_m]
+                row += [controller.setpoint_m, reading_m, velocities[index]]
             loop_rows.append(row)
         for index, actuator in enumerate(actuators):
             actuator.step(applied[index], physics_s)
@@ -181,7 +187,8 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                         demand_t_ns=_to_ns(demand_t), demand_m=np.asarray(demand_points),
                         command_m=np.asarray(command_points),
                         tracked_t_ns=_to_ns(tracked_t[kept]), tracked_m=tracked[kept]),
-        loop_t_s=loops[:, 0], planned_m=loops[:, 1::2], measured_m=loops[:, 2::2])
+        loop_t_s=loops[:, 0], planned_m=loops[:, 1::3], measured_m=loops[:, 2::3],
+        commanded_m_s=loops[:, 3::3])
 
 
 def _to_ns(t_s: np.ndarray) -> np.ndarray:
@@ -189,40 +196,49 @@ def _to_ns(t_s: np.ndarray) -> np.ndarray:
 
 
 def learning_series(design: Design, config: dict, corrector, iterations: int = 3,
-                    seed: int = 0, demand: Optional[Trajectory] = None) -> dict:
+                    seed: int = 0, demand: Optional[Trajectory] = None,
+                    take_up_backlash: bool = True) -> dict:
     """
     Learn the path on the simulated rig as ``flexure-ctrl demo`` does; return its summary.
 
-    The original run, ``iterations`` corrections from ``corrector`` (an
-    :class:`~flexure_ctrl.core.correction.IterativeCorrector`), then the last command once
-    more for the repeatability floor. The summary has the keys of the demo's
-    ``summary.json`` that the acceptance reads (``iterations`` rows in mm, with each
-    correction's ``note``, and ``repeatability_floor``).
+    The original run, ``iterations`` corrections (:class:`~flexure_ctrl.core.learning.
+    PathLearning` with ``corrector``, an :class:`~flexure_ctrl.core.correction.
+    IterativeCorrector`), then the last command once more for the repeatability floor.
+    The summary has the keys of the demo's ``summary.json`` that the acceptance reads
+    (``iterations`` rows in mm, with each correction's ``note`` and the backlash the
+    loops took up, and ``repeatability_floor``).
     """
     # Imported here: the CLI's report module is not needed to simulate a run.
     from flexure_ctrl.cli.report_command import add_reductions, iteration_summary
     from flexure_ctrl.core.correction import path_errors
+    from flexure_ctrl.core.learning import PathLearning
     from flexure_ctrl.core.repeatability import repeatability_floor
     from flexure_ctrl.core.trajectory import SinePath, WaypointPath
 
     demand = SinePath() if demand is None else demand
+    learning = PathLearning(corrector, take_up_backlash)
     command = None
     rows = []
-    for index in range(iterations + 1):
-        errors = path_errors(simulate_run(design, config, demand, command,
-                                          seed=seed * 1000 + index).run)
-        corrector.add_run(errors)
+    for index in range(iterations + 2):
+        take_up_m = tuple(learning.take_up_m[name] for name in ACTUATOR_NAMES)
+        simulated = simulate_run(design, config, demand, command, seed=seed * 1000 + index,
+                                 backlash_m=take_up_m)
+        errors = path_errors(simulated.run)
+        if index > iterations:
+            floor = repeatability_floor(corrector.iterations[-1].errors, errors)
+            break
+        learning.add_run(errors, {name: (simulated.loop_t_s, simulated.measured_m[:, column],
+                                         simulated.commanded_m_s[:, column])
+                                  for column, name in enumerate(ACTUATOR_NAMES)})
         rows.append(iteration_summary(index, Path(f'simulated_{index}'), errors))
-        if index == iterations:
-            break
-        learned = corrector.next_command()
-        rows[-1]['note'] = corrector.note
-        if learned is None:
-            break
-        command = WaypointPath(learned.t_s, learned.points_m[:, 0], learned.points_m[:, 1])
-    repeat = path_errors(simulate_run(design, config, demand, command,
-                                      seed=seed * 1000 + 999).run)
-    floor = repeatability_floor(corrector.iterations[-1].errors, repeat)
+        rows[-1]['backlash_taken_up_mm'] = [1e3 * value for value in take_up_m]
+        if index < iterations:
+            learned = learning.next_command()
+            rows[-1]['note'] = learning.note
+            if learned is None:
+                iterations = index
+                continue
+            command = WaypointPath(learned.t_s, learned.points_m[:, 0], learned.points_m[:, 1])
     add_reductions(rows)
     return {'design': design.name, 'iterations': rows,
             'repeatability_floor': floor.summary()}

@@ -1,0 +1,98 @@
+"""
+Learning run after run: the command path, and the backlash the loops take up.
+
+Two things are learned from each run, and one decides for both demo and ``flexure-ctrl
+correct``:
+
+* the command path (:class:`~flexure_ctrl.core.correction.IterativeCorrector`, from the
+  tracker's error at the end point);
+* each drive's backlash (:class:`~flexure_ctrl.core.backlash.BacklashLearner`, from the
+  loop's own readings and commands around the actuator's reversals), which the loops
+  take up from the next run on (their ``backlash_m``). A reversal is where a lead screw's
+  dead band leaves a sharp error that the path's 1 Hz learning cannot follow; carried
+  across by the loop, it is gone at its cause.
+
+When the take-up the next run will have differs from the one the run had, the run's
+error around the reversals was the backlash's, which the take-up changes: it is bridged,
+not learned (learning it too would correct the same error twice).
+"""
+
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+
+from flexure_ctrl.core.backlash import BacklashLearner
+from flexure_ctrl.core.correction import CommandPath, IterativeCorrector, PathErrors
+from flexure_ctrl.interface import ACTUATOR_NAMES
+import numpy as np
+
+# The error a take-up changes lasts about the drive's lag and the loop's settling around
+# each reversal: this far either side of it is bridged when the take-up changes.
+REVERSAL_HALF_WIDTH_S = 0.35
+# A take-up that moves by less than this (m), or this fraction of itself, has not changed.
+TAKE_UP_CHANGE_M = 2e-5
+TAKE_UP_CHANGE_FRACTION = 0.2
+
+# One actuator's loop cycles: path time (s), potentiometer reading (m), command (m/s).
+LoopCycles = Tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+class PathLearning:
+    """
+    The learning of one series of runs.
+
+    :param corrector: learns the command path.
+    :param take_up_backlash: measure each drive's backlash and have the loops take it up.
+    :param take_up_m: the backlash (m) each loop took up in the first run (its
+        ``backlash_m``); 0 for every actuator not named.
+    """
+
+    def __init__(self, corrector: IterativeCorrector, take_up_backlash: bool = True,
+                 take_up_m: Optional[Mapping[str, float]] = None) -> None:
+        self.corrector = corrector
+        self.backlash = BacklashLearner() if take_up_backlash else None
+        self.take_up_m: Dict[str, float] = {name: float((take_up_m or {}).get(name, 0.0))
+                                            for name in ACTUATOR_NAMES}
+        self.messages: List[str] = []
+
+    def add_run(self, errors: PathErrors, cycles: Mapping[str, LoopCycles]) -> None:
+        """
+        Add a run made with the last command and :attr:`take_up_m`.
+
+        :param errors: the run's path errors.
+        :param cycles: each actuator's loop cycles in the run (path time, as ``errors``).
+        """
+        self.messages = []
+        bridged: List[Tuple[float, float]] = []
+        if self.backlash is not None:
+            for name in ACTUATOR_NAMES:
+                if name not in cycles:
+                    self.messages.append(f'{name}: no loop states recorded: its backlash '
+                                         'is not measured')
+                    continue
+                estimate = self.backlash.add_run(name, *cycles[name])
+                if estimate is None:
+                    self.messages.append(f'{name}: no clean reversal: backlash not measured')
+                    continue
+                used, learned = self.take_up_m[name], self.backlash.backlash_m(name)
+                self.messages.append(
+                    f'{name}: backlash {estimate.backlash_m * 1e3:.3f} mm at '
+                    f'{estimate.reversals} reversal(s), taken up next run: '
+                    f'{learned * 1e3:.3f} mm')
+                if abs(learned - used) > max(TAKE_UP_CHANGE_M, TAKE_UP_CHANGE_FRACTION * learned):
+                    bridged += [(t - REVERSAL_HALF_WIDTH_S, t + REVERSAL_HALF_WIDTH_S)
+                                for t in estimate.reversal_times_s]
+                self.take_up_m[name] = learned
+        self.corrector.add_run(errors, bridged_s=bridged)
+
+    def next_command(self) -> Optional[CommandPath]:
+        """The next run's command path (None: learning has stopped); see :attr:`note`."""
+        return self.corrector.next_command()
+
+    @property
+    def note(self) -> str:
+        """What the last decision of the path's learning was, if anything but the usual."""
+        return self.corrector.note
+
+    def take_up_arguments(self) -> Sequence[str]:
+        """``up`` options that set the loops' take-up to :attr:`take_up_m`."""
+        return [f'--ros-arg={name}:backlash_m:={value:.9f}'
+                for name, value in self.take_up_m.items()]
