@@ -2,7 +2,7 @@
 
 import math
 
-from flexure_ctrl.core.ploop import ActuatorController, LoopConfigError, LoopLimits
+from flexure_ctrl.core.ploop import ActuatorController, BacklashTakeUp, LoopConfigError, LoopLimits
 from flexure_ctrl.core.ploop import ProportionalLoop
 from flexure_ctrl.core.run import Following, JointSampler, RunMessage, RunState
 import numpy as np
@@ -321,3 +321,91 @@ def test_a_jog_setpoint_made_before_a_run_ended_does_not_move_the_actuator_after
     # A jog made after the end is followed.
     assert ctrl.on_stream_setpoint(0.02, 0.0, 20 * MS, 20 * MS)
     assert ctrl.following is Following.STREAM
+
+
+def test_backlash_take_up_adds_exactly_the_backlash_on_each_reversal():
+    take_up = BacklashTakeUp(1e-4, take_up_s=0.02)
+    # The first move of a run: the nut's side is unknown, nothing added.
+    assert take_up.velocity(0.005, 0.002) == 0.0
+    rng = np.random.default_rng(3)
+    for direction in (-1.0, 1.0, -1.0):
+        added_m, steps = 0.0, 0
+        for _ in range(100):  # uneven cycles, as a loop thread has them
+            dt_s = float(rng.uniform(0.001, 0.004))
+            velocity_m_s = take_up.velocity(direction * 0.005, dt_s)
+            assert abs(velocity_m_s) <= 1e-4 / 0.02 + 1e-12  # never faster than the pulse
+            steps += velocity_m_s != 0.0
+            added_m += velocity_m_s * dt_s
+        assert added_m == pytest.approx(direction * 1e-4, abs=1e-15)
+        assert 4 <= steps <= 21  # 20 ms of 1-4 ms cycles
+
+
+def test_backlash_take_up_keeps_its_side_through_slow_setpoints_and_can_be_off():
+    take_up = BacklashTakeUp(1e-4, min_speed_m_s=1e-4)
+    take_up.velocity(0.002, 0.002)
+    for speed in (5e-5, -5e-5, 0.0, -9e-5):  # slower than min_speed: no reversal
+        assert take_up.velocity(speed, 0.002) == 0.0
+    assert take_up.velocity(-2e-4, 0.002) < 0.0
+    off = BacklashTakeUp(0.0)
+    assert [off.velocity(v, 0.002) for v in (0.01, -0.01, 0.01)] == [0.0, 0.0, 0.0]
+    with pytest.raises(LoopConfigError, match='take_up_s'):
+        BacklashTakeUp(1e-4, take_up_s=0.0)
+
+
+def test_a_step_the_loop_drives_to_sets_the_nut_side_for_the_next_move():
+    """A run's lead-in: a held first point the loop drives to, then the path."""
+    take_up = BacklashTakeUp(1e-4, take_up_s=0.02)
+    take_up.velocity(0.005, 0.002)          # the last run ended moving outward (+)
+    # The lead-in: the setpoint steps back and holds; the loop drives inward fast.
+    assert take_up.velocity(0.0, 0.002, last_command_m_s=-0.02) == 0.0
+    # The dither of a loop holding still (below push speed) does not move the side.
+    assert take_up.velocity(0.0, 0.002, last_command_m_s=0.001) == 0.0
+    # The path starts outward from there: a reversal of the nut, taken up.
+    added_m = sum(take_up.velocity(0.003, 0.002) * 0.002 for _ in range(20))
+    assert added_m == pytest.approx(1e-4, abs=1e-15)
+    # Without the lead-in's push the same start would not count as a reversal.
+    stale = BacklashTakeUp(1e-4, take_up_s=0.02)
+    stale.velocity(0.005, 0.002)
+    stale.velocity(0.0, 0.002)
+    assert stale.velocity(0.003, 0.002) == 0.0
+    with pytest.raises(LoopConfigError, match='push_speed_m_s'):
+        BacklashTakeUp(1e-4, push_speed_m_s=0.0)
+
+
+def test_a_run_takes_up_the_backlash_where_its_plan_reverses():
+    from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters
+    parameters = LeadScrewParameters(lag_s=0.05, max_speed_m_s=0.02, backlash_m=2e-4,
+                                     pot_noise_m=0.0, pot_quantum_m=0.0,
+                                     drift_m_per_s=0.0, end_stop_m=0.05)
+    # One actuator of the paper's path: 12 mm about 0 over 14 s, from rest at its top,
+    # planned every 10 ms; the plan reverses at 7 s.
+    amplitude_m, omega = 0.012, 2.0 * math.pi / 14.0
+    times = np.arange(0.0, 10.0 + 1e-9, 0.01)
+    sampler = lambda: JointSampler(times, amplitude_m * np.cos(omega * times),  # noqa: E731
+                                   -amplitude_m * omega * np.sin(omega * times))
+
+    def worst_error_after_reversal_m(backlash_m):
+        controller = ActuatorController(ProportionalLoop(20.0, 1.0, LIMITS), 1.0, 0.0, 1.0,
+                                        take_up=BacklashTakeUp(backlash_m))
+        controller.load_trajectory(sampler(), 0)
+        controller.on_run_message(RunMessage(RunState.RUNNING, 0), 0)
+        # The last run ended moving up, onto the top: the nut pushes from below.
+        actuator = LeadScrewActuator(parameters, np.random.default_rng(0), amplitude_m)
+        actuator.step(0.01, 0.05)
+        actuator.step(-0.01, 0.0)
+        worst_m, dt_s = 0.0, 0.002
+        for step in range(-250, int(10.0 / dt_s)):
+            now_ns = int(step * dt_s * 1e9)
+            controller.on_run_message(RunMessage(RunState.RUNNING, 0), now_ns)
+            command = controller.step(now_ns, actuator.rod_position_m)
+            actuator.step(command, dt_s)
+            if step * dt_s > 6.5:
+                t_s = (step + 1) * dt_s
+                worst_m = max(worst_m, abs(amplitude_m * math.cos(omega * t_s)
+                                           - actuator.rod_position_m))
+        return worst_m
+
+    without_m = worst_error_after_reversal_m(0.0)
+    with_m = worst_error_after_reversal_m(2e-4)
+    assert without_m > 6e-5  # the backlash shows: a good part of the 0.2 mm band
+    assert with_m < 0.5 * without_m

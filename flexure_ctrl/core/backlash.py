@@ -212,6 +212,36 @@ def estimate_backlash(t_s: np.ndarray, pot_m: np.ndarray, travel_m: np.ndarray,
                                                    for start, stop, _ in windows))
 
 
+def estimate_from_cycles(t_s: np.ndarray, pot_m: np.ndarray, velocity_m_s: np.ndarray,
+                         **options) -> BacklashEstimate:
+    """
+    Fit the backlash to a loop's recorded cycles (time s, latest reading m, command m/s).
+
+    A loop cycles faster than its drive reports: a reading repeats until the next comes.
+    The fit takes each reading at the first cycle that saw it (a repeated one would read
+    as a rod standing still, i.e. as backlash), with the command integrated over every
+    cycle. A reading equal to the one before (a rod at rest, without noise) is new when a
+    whole report period (the median time between changes) has passed since the last one
+    taken. ``options`` go to :func:`estimate_backlash`.
+
+    :raises BacklashEstimateError: as :func:`estimate_backlash`.
+    """
+    t_s, pot_m, velocity_m_s = (np.asarray(a, dtype=float) for a in (t_s, pot_m, velocity_m_s))
+    if not t_s.shape == pot_m.shape == velocity_m_s.shape or t_s.ndim != 1 or t_s.size < 2:
+        raise BacklashEstimateError('time, readings and commands must be 1-D and alike')
+    travel_m = commanded_travel(t_s, velocity_m_s)
+    changed = np.concatenate([[True], np.diff(pot_m) != 0.0])
+    change_times = t_s[changed]
+    period_s = float(np.median(np.diff(change_times))) if change_times.size > 2 else 0.0
+    fresh = changed.copy()
+    last_s = t_s[0]
+    for index in range(t_s.size):
+        if changed[index] or t_s[index] - last_s >= 0.999 * period_s:
+            fresh[index] = True
+            last_s = t_s[index]
+    return estimate_backlash(t_s[fresh], pot_m[fresh], travel_m[fresh], **options)
+
+
 class BacklashLearner:
     """
     Each drive's backlash, measured run after run: what the loops take up next run.
@@ -235,8 +265,7 @@ class BacklashLearner:
         :returns: the run's estimate, or None when the run gives none.
         """
         try:
-            estimate = estimate_backlash(t_s, pot_m, commanded_travel(t_s, velocity_m_s),
-                                         **self.options)
+            estimate = estimate_from_cycles(t_s, pot_m, velocity_m_s, **self.options)
         except BacklashEstimateError:
             return None
         self.estimates.setdefault(actuator, []).append(estimate)
