@@ -18,7 +18,8 @@ from flexure_ctrl.core.correction import (DEFAULT_BRIDGE_MAX_S, DEFAULT_CUTOFF_H
                                           DEFAULT_LATER_GAIN, DEFAULT_SPIKE_THRESHOLD,
                                           IterativeCorrector, path_errors)
 from flexure_ctrl.core.errors import CorrectionError
-from flexure_ctrl.core.runs import load_last_run
+from flexure_ctrl.core.learning import PathLearning
+from flexure_ctrl.core.runs import load_actuator_states, load_last_run
 
 
 def add_learning_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,10 +36,13 @@ def add_learning_arguments(parser: argparse.ArgumentParser) -> None:
                              'no filter (default: %(default)s)')
     parser.add_argument('--spike-threshold', type=float, default=DEFAULT_SPIKE_THRESHOLD,
                         metavar='SIGMAS',
-                        help='leave out of learning (and of the gain decision) the sharp '
-                             'errors of a run that the run before did not have, this many '
-                             'robust standard deviations out; 0 learns everything '
-                             '(default: %(default)s)')
+                        help='bridge, not learn, the sharp errors of a run that the run '
+                             'before did not have, this many robust standard deviations out; '
+                             '0 learns everything (default: %(default)s)')
+    parser.add_argument('--no-take-up', dest='take_up_backlash', action='store_false',
+                        help="do not measure the drives' backlash from the loops' recorded "
+                             'states, nor have the loops take it up at reversals (by default '
+                             'they do, from the second run on)')
 
 
 def add_parser(commands) -> None:
@@ -69,23 +73,33 @@ def run(arguments: argparse.Namespace) -> int:
     corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
                                    cutoff_hz=arguments.cutoff_hz or None,
                                    spike_threshold=arguments.spike_threshold or None)
+    # As the demo decides: the loops of each run after the first took up the backlash
+    # measured on the runs before it (the take-up this command prints).
+    learning = PathLearning(corrector, arguments.take_up_backlash)
     for index, bag in enumerate(arguments.bags):
-        errors = path_errors(load_last_run(bag), bridge_max_s=arguments.bridge_max_s)
-        corrector.add_run(errors)
+        run_of_bag = load_last_run(bag)
+        errors = path_errors(run_of_bag, bridge_max_s=arguments.bridge_max_s)
+        learning.add_run(errors, load_actuator_states(bag, run_of_bag)
+                         if arguments.take_up_backlash else {})
         max_mm = errors.max_abs_error_m() * 1e3
         gaps = int((~errors.grid_learnable[errors.on_path()]).sum())
         spike_s = corrector.iterations[-1].spike_seconds()
         print(f'run {index} ({bag}): max |e_x| {max_mm[0]:.3f} mm, max |e_y| '
               f'{max_mm[1]:.3f} mm; {gaps} of {int(errors.on_path().sum())} path samples in '
-              'tracker gaps' + (f', {spike_s:.2f} s of new error spikes' if spike_s else '')
-              + ' (not learned)')
-    command = corrector.next_command()
-    if corrector.note:
-        print(corrector.note)
+              'tracker gaps (not learned)'
+              + (f', {spike_s:.2f} s bridged' if spike_s else ''))
+        for message in learning.messages:
+            print(f'run {index}: {message}')
+    command = learning.next_command()
+    if learning.note:
+        print(learning.note)
     if command is None:
         return 1
     out = arguments.out or Path(arguments.bags[-1]) / 'next_command.csv'
     command.write_csv(out)
     print(f'wrote {out}: gain {corrector.gain:g}, ' + (
         f'Q cutoff {arguments.cutoff_hz:g} Hz' if arguments.cutoff_hz else 'no filter'))
+    if arguments.take_up_backlash:
+        print('run it with the loops taking up the backlash measured: flexure-ctrl up '
+              f'--correction {out} ' + ' '.join(learning.take_up_arguments()))
     return 0

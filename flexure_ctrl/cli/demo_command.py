@@ -27,8 +27,9 @@ from flexure_ctrl.core.correction import IterativeCorrector, path_errors
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.repeatability import repeatability_floor
 from flexure_ctrl.core.run import RunMessage, RunState
-from flexure_ctrl.core.runs import load_last_run
-from flexure_ctrl.interface import (COMMAND_TOPIC, CORRECTION_TOPICS, RECORDER,
+from flexure_ctrl.core.learning import PathLearning
+from flexure_ctrl.core.runs import load_actuator_states, load_last_run
+from flexure_ctrl.interface import (ACTUATOR_NAMES, COMMAND_TOPIC, CORRECTION_TOPICS, RECORDER,
                                     RECORDER_INTAKE, RUN_STATUS_NAME, RUN_TOPIC,
                                     SETPOINTS_TOPIC, START_SERVICE, TRAJECTORY_GENERATOR)
 
@@ -165,18 +166,25 @@ class _Operator:
                 self._run_changed.wait(remaining)
             return self.run
 
-    def set_correction_file(self, path: str) -> None:
+    def _set_parameter(self, node: str, name: str, value) -> None:
         from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
         from rcl_interfaces.srv import SetParameters
-        request = SetParameters.Request(parameters=[Parameter(
-            name='correction_file', value=ParameterValue(
-                type=ParameterType.PARAMETER_STRING, string_value=path))])
-        response = self._call(SetParameters, f'/{TRAJECTORY_GENERATOR}/set_parameters',
-                              request)
-        result = response.results[0]
+        if isinstance(value, str):
+            typed = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
+        else:
+            typed = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+        request = SetParameters.Request(parameters=[Parameter(name=name, value=typed)])
+        result = self._call(SetParameters, f'/{node}/set_parameters', request).results[0]
         if not result.successful:
-            raise DemoError(f'{TRAJECTORY_GENERATOR} refused the command path {path}: '
-                            f'{result.reason}')
+            raise DemoError(f'{node} refused {name} = {value}: {result.reason}')
+
+    def set_correction_file(self, path: str) -> None:
+        self._set_parameter(TRAJECTORY_GENERATOR, 'correction_file', path)
+
+    def set_backlash(self, take_up_m: dict) -> None:
+        """Set each loop's backlash take-up (m) for the next run."""
+        for actuator, value in take_up_m.items():
+            self._set_parameter(actuator, 'backlash_m', float(value))
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -274,6 +282,7 @@ def run(arguments: argparse.Namespace) -> int:
     corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
                                    cutoff_hz=arguments.cutoff_hz,
                                    spike_threshold=arguments.spike_threshold or None)
+    learning = PathLearning(corrector, arguments.take_up_backlash)
     folder = tempfile.TemporaryDirectory(prefix='flexure_ctrl_demo_')
     launches, niceness_of = up_command.plan_launches(_up_arguments(arguments),
                                                      Path(folder.name))
@@ -294,19 +303,25 @@ def run(arguments: argparse.Namespace) -> int:
             bag = _record_run(launcher, operator, arguments.bag_dir,
                               f'demo_{arguments.design}_{stamp}_iteration_{index}', arguments,
                               progress, index)
-            errors = path_errors(load_last_run(bag))
-            corrector.add_run(errors)
+            run_of_bag = load_last_run(bag)
+            errors = path_errors(run_of_bag)
             row = report_command.iteration_summary(index, bag, errors)
+            row['backlash_taken_up_mm'] = [1e3 * learning.take_up_m[name]
+                                           for name in ACTUATOR_NAMES]
+            learning.add_run(errors, load_actuator_states(bag, run_of_bag))
             rows.append(row)
             progress.line(f'[demo] iteration {index}: max |e_x| {row["max_abs_error_x_mm"]:.3f}'
                           f' mm, max |e_y| {row["max_abs_error_y_mm"]:.3f} mm  ({bag})')
             spike_s = corrector.iterations[-1].spike_seconds()
             if spike_s:
-                progress.line(f'[demo] iteration {index}: {spike_s:.2f} s of error spikes that '
-                              'the run before did not have are not learned')
+                progress.line(f'[demo] iteration {index}: {spike_s:.2f} s of error (spikes '
+                              'the run before did not have, reversals whose take-up changes) '
+                              'bridged, not learned')
+            for message in learning.messages:
+                progress.line(f'[demo] iteration {index}: {message}')
             if index == arguments.iterations:
                 break
-            command = corrector.next_command()
+            command = learning.next_command()
             if command is None:
                 progress.line(f'[demo] {corrector.note}')
                 row['note'] = corrector.note
@@ -317,6 +332,7 @@ def run(arguments: argparse.Namespace) -> int:
             row['note'] = corrector.note
             command_file = command.write_csv(out / f'command_{index + 1}.csv')
             operator.set_correction_file(str(command_file.resolve()))
+            operator.set_backlash(learning.take_up_m)
         if arguments.repeat_last:
             # The command of the last run, run again: what differs is what does not repeat.
             index = len(rows)

@@ -55,7 +55,8 @@ from flexure_ctrl.core.commissioning import load_eds
 from flexure_ctrl.core.drive_client import DriveError
 from flexure_ctrl.core.drive_link import DriveConnectError, DriveLink
 from flexure_ctrl.core.errors import FlexureCtrlError, one_line
-from flexure_ctrl.core.ploop import ActuatorController, LoopLimits, ProportionalLoop
+from flexure_ctrl.core.ploop import (ActuatorController, BacklashTakeUp, LoopLimits,
+                                     ProportionalLoop)
 from flexure_ctrl.core.run import LoopStatus, PlanError, RunMessage
 from flexure_ctrl.interface import ACTUATOR_NAMES
 from flexure_ctrl.nodes import common
@@ -104,7 +105,8 @@ class ActuatorLoop(LifecycleNode):
         self.loop = ProportionalLoop(p.gain_per_s, p.velocity_feedforward, self.limits)
         self.controller = ActuatorController(
             self.loop, p.watchdog_timeout_s, p.setpoint_hold_max_age_s, p.path_tolerance_m,
-            p.compensate_reading_age)
+            p.compensate_reading_age,
+            take_up=BacklashTakeUp(p.backlash_m, p.backlash_take_up_s))
         self.drive = ActuatorDrive(self.controller)
         description = p.drive_description(ActuatorLoopConfigError)
         self.link = DriveLink(p.can_interface, p.can_channel, p.can_host, p.can_port,
@@ -176,6 +178,10 @@ class ActuatorLoop(LifecycleNode):
                 with self._lock:
                     setattr(self.loop, parameter.name, parameter.value)
                 self.get_logger().info(f'{parameter.name} set to {parameter.value}')
+            elif parameter.name == 'backlash_m':
+                with self._lock:
+                    self.controller.take_up.backlash_m = float(parameter.value)
+                self.get_logger().info(f'backlash take-up set to {parameter.value * 1e3:.3f} mm')
 
     def _new_thread(self) -> LoopThread:
         p = self.p

@@ -46,6 +46,11 @@ _RANGED = (
     ('velocity_feedforward', 1.0, 'fraction of the setpoint velocity fed forward; may '
      'change live', 0.0, 1.0, True),
     ('max_speed_m_s', 0.02, 'velocity command limit (m/s)', 1e-4, 0.5, False),
+    ('backlash_m', 0.0, "the lead screw's backlash (m): where a run's plan reverses, a "
+     'velocity pulse carries the nut across it (flexure-ctrl demo and correct measure it '
+     'run by run); 0: off; may change live, for the next run', 0.0, 0.005, True),
+    ('backlash_take_up_s', 0.02, 'duration (s) of the pulse that takes the backlash up',
+     0.001, 0.5, False),
     ('watchdog_timeout_s', 0.25, "largest age (s) of the run owner's word during a run "
      '(it speaks every 0.05 s) and of a jog setpoint, before ramping to zero velocity',
      0.005, 10.0, False),
@@ -114,6 +119,8 @@ class LoopParameters:
     gain_per_s: float
     velocity_feedforward: float
     max_speed_m_s: float
+    backlash_m: float
+    backlash_take_up_s: float
     watchdog_timeout_s: float
     setpoint_hold_max_age_s: float
     watchdog_decel_m_s2: float
