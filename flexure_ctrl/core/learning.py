@@ -21,12 +21,15 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 from flexure_ctrl.core.backlash import BacklashLearner
 from flexure_ctrl.core.correction import CommandPath, IterativeCorrector, PathErrors
+from flexure_ctrl.core.run import JointSampler
 from flexure_ctrl.interface import ACTUATOR_NAMES
 import numpy as np
 
 # The error a take-up changes lasts about the drive's lag and the loop's settling around
 # each reversal: this far either side of it is bridged when the take-up changes.
 REVERSAL_HALF_WIDTH_S = 0.35
+# Strokes of the recorded readings: this far from a turning point, clear of their noise.
+STROKE_MIN_TRAVEL_M = 3e-4
 # A take-up that moves by less than this (m), or this fraction of itself, has not changed.
 TAKE_UP_CHANGE_M = 2e-5
 TAKE_UP_CHANGE_FRACTION = 0.2
@@ -78,8 +81,13 @@ class PathLearning:
                     f'{estimate.reversals} reversal(s), taken up next run: '
                     f'{learned * 1e3:.3f} mm')
                 if abs(learned - used) > max(TAKE_UP_CHANGE_M, TAKE_UP_CHANGE_FRACTION * learned):
+                    # Where each stroke of the path starts (its first move included: the
+                    # nut comes from the lead-in's side) the take-up acts.
+                    t_s, position_m, _ = cycles[name]
+                    starts, _ = JointSampler(t_s, position_m, np.zeros_like(t_s)).strokes(
+                        STROKE_MIN_TRAVEL_M)
                     bridged += [(t - REVERSAL_HALF_WIDTH_S, t + REVERSAL_HALF_WIDTH_S)
-                                for t in estimate.reversal_times_s]
+                                for t in starts if 0.0 <= t <= errors.duration_s]
                 self.take_up_m[name] = learned
         self.corrector.add_run(errors, bridged_s=bridged)
 

@@ -24,7 +24,7 @@ node shares (setpoint and trajectory stamps are on it).
 
 from dataclasses import dataclass
 import math
-from typing import Optional
+from typing import Optional, Tuple
 
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.run import Following, JointSampler, RunMessage, RunState
@@ -230,6 +230,11 @@ class BacklashTakeUp:
     lead-in to its first point: faster than ``push_speed_m_s``) puts the nut on the side
     of that drive, so the path's first move away from it is taken up if it reverses.
 
+    A run's plan is known whole: :class:`ActuatorController` tells the take-up which
+    way the plan's stroke in progress goes (:meth:`JointSampler.strokes`, strokes of at
+    least ``min_stroke_m``) through :meth:`velocity_moving`, so that a learned command's
+    small wiggles about a turning point are not taken for reversals of their own.
+
     :param backlash_m: width of the dead band (m), 0 or more; 0 turns it off.
     :param take_up_s: duration of the pulse (s), > 0.
     :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0.
@@ -238,11 +243,12 @@ class BacklashTakeUp:
     :raises LoopConfigError: a value out of range.
     """
 
-    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', 'push_speed_m_s', '_side',
-                 '_remaining_m')
+    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', 'push_speed_m_s', 'min_stroke_m',
+                 '_side', '_remaining_m')
 
     def __init__(self, backlash_m: float, take_up_s: float = 0.02,
-                 min_speed_m_s: float = 1e-4, push_speed_m_s: float = 2e-3) -> None:
+                 min_speed_m_s: float = 1e-4, push_speed_m_s: float = 2e-3,
+                 min_stroke_m: float = 5e-5) -> None:
         _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
                  f'backlash_m must be finite and >= 0, got {backlash_m!r}')
         _require(math.isfinite(take_up_s) and take_up_s > 0.0,
@@ -255,6 +261,9 @@ class BacklashTakeUp:
                  f'push_speed_m_s must be finite and > 0, got {push_speed_m_s!r}')
         self.min_speed_m_s = float(min_speed_m_s)
         self.push_speed_m_s = float(push_speed_m_s)
+        _require(math.isfinite(min_stroke_m) and min_stroke_m > 0.0,
+                 f'min_stroke_m must be finite and > 0, got {min_stroke_m!r}')
+        self.min_stroke_m = float(min_stroke_m)
         self._side = 0
         self._remaining_m = 0.0
 
@@ -269,13 +278,23 @@ class BacklashTakeUp:
 
         :param last_command_m_s: the loop's previous velocity command (m/s).
         """
-        if self.backlash_m == 0.0:
-            return 0.0
         if setpoint_velocity_m_s > self.min_speed_m_s:
             moving = 1
         elif setpoint_velocity_m_s < -self.min_speed_m_s:
             moving = -1
         else:
+            moving = 0
+        return self.velocity_moving(moving, dt_s, last_command_m_s)
+
+    def velocity_moving(self, moving: int, dt_s: float, last_command_m_s: float = 0.0) -> float:
+        """
+        :meth:`velocity` for a setpoint known to move one way (+1, -1) or to hold (0).
+
+        :param last_command_m_s: the loop's previous velocity command (m/s).
+        """
+        if self.backlash_m == 0.0:
+            return 0.0
+        if moving == 0:
             moving = self._side
             if self._remaining_m == 0.0 and abs(last_command_m_s) > self.push_speed_m_s:
                 # The loop drives to a held setpoint: the nut pushes from that side now.
@@ -332,7 +351,7 @@ class ActuatorController:
                  'trajectory_stamp_ns', '_sampler', '_loaded_sampler', '_loaded_stamp_ns',
                  '_last_run_ns', '_last_step_ns', 'stream_ignored', 'stream_stale',
                  '_ended_stamp_ns', '_run_ended_ns',
-                 'max_deviation_m', 'take_up')
+                 'max_deviation_m', 'take_up', '_strokes', '_loaded_strokes', '_stroke')
 
     _MAX_DT_S = 0.02
 
@@ -368,6 +387,10 @@ class ActuatorController:
         self.stream_stale = 0
         self.max_deviation_m = 0.0
         self.take_up = BacklashTakeUp(0.0) if take_up is None else take_up
+        # The plan's strokes (start s of path time, direction), and the one in progress.
+        self._strokes: Tuple[Tuple[float, ...], Tuple[int, ...]] = ((), ())
+        self._loaded_strokes = self._strokes
+        self._stroke = -1
 
     @property
     def loaded_stamp_ns(self) -> int:
@@ -384,6 +407,7 @@ class ActuatorController:
         """
         self._loaded_sampler = sampler
         self._loaded_stamp_ns = stamp_ns
+        self._loaded_strokes = sampler.strokes(self.take_up.min_stroke_m)
         if self.following is not Following.RUN:
             self.problem = ''
 
@@ -399,6 +423,8 @@ class ActuatorController:
                 and message.trajectory_stamp_ns == self._loaded_stamp_ns
                 and message.trajectory_stamp_ns != self._ended_stamp_ns):
             self._sampler = self._loaded_sampler
+            self._strokes = self._loaded_strokes
+            self._stroke = -1
             self.trajectory_stamp_ns = self._loaded_stamp_ns
             self.following = Following.RUN
             self.problem = self.stop_reason = ''
@@ -502,7 +528,8 @@ class ActuatorController:
                         return self._ramp(dt_s)
                 output = self.loop.command(planned_m, velocity_m_s, measured_m)
                 if not self.loop.stroke_guarded:
-                    output += self.take_up.velocity(velocity_m_s, dt_s, self.output_m_s)
+                    output += self.take_up.velocity_moving(
+                        self._moving((now_ns - start_ns) / _NS_PER_S), dt_s, self.output_m_s)
                     limit = self.loop.limits.max_speed_m_s
                     output = min(max(output, -limit), limit)
                 self.output_m_s = output
@@ -516,6 +543,15 @@ class ActuatorController:
                 return self.output_m_s
             self.stop(f'no fresh setpoint for {self._timeout_ns / _NS_PER_S} s')
         return self._ramp(dt_s)
+
+    def _moving(self, path_time_s: float) -> int:
+        """Which way the plan's stroke in progress goes at ``path_time_s``; 0: none yet."""
+        starts, directions = self._strokes
+        stroke = self._stroke
+        while stroke + 1 < len(starts) and starts[stroke + 1] <= path_time_s:
+            stroke += 1
+        self._stroke = stroke
+        return directions[stroke] if stroke >= 0 else 0
 
     def _ramp(self, dt_s: float) -> float:
         """One step of the ramp to zero velocity at the loop's deceleration."""

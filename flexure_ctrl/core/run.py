@@ -202,6 +202,36 @@ class JointSampler:
         return position, velocity
 
 
+    def strokes(self, min_travel_m: float) -> Tuple[Tuple[float, ...], Tuple[int, ...]]:
+        """
+        The joint's strokes: when each starts (s) and which way it goes (+1, -1).
+
+        A stroke starts at a turning point of the positions (the first: where the joint
+        leaves its start) and counts once the joint has moved ``min_travel_m`` (m) from
+        it; wiggles smaller than that are no strokes of their own.
+        """
+        starts: List[float] = []
+        directions: List[int] = []
+        times, positions = self._times, self._positions
+        low = high = 0
+        direction = 0
+        for index in range(1, len(positions)):
+            position = positions[index]
+            if position > positions[high]:
+                high = index
+            if position < positions[low]:
+                low = index
+            if direction <= 0 and position - positions[low] > min_travel_m:
+                starts.append(times[low])
+                directions.append(1)
+                direction, high = 1, index
+            elif direction >= 0 and positions[high] - position > min_travel_m:
+                starts.append(times[high])
+                directions.append(-1)
+                direction, low = -1, index
+        return tuple(starts), tuple(directions)
+
+
 # ---------------------------------------------------------------------------- protocol
 
 class RunState(enum.Enum):

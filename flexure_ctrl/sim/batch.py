@@ -71,6 +71,8 @@ class SimulatedRun:
     :param planned_m: each loop's plan at its cycle times, ``(L, 2)`` (m).
     :param measured_m: each loop's potentiometer reading at its cycle times, ``(L, 2)``.
     :param commanded_m_s: each loop's velocity command at its cycle times, ``(L, 2)``.
+    :param end_m: both rods' positions (m) at the end: where the next run starts.
+    :param end_nut_offset_m: each nut's place in its band at the end, from its rod (m).
     """
 
     run: RecordedRun
@@ -78,6 +80,8 @@ class SimulatedRun:
     planned_m: np.ndarray
     measured_m: np.ndarray
     commanded_m_s: np.ndarray
+    end_m: Tuple[float, float]
+    end_nut_offset_m: Tuple[float, float]
 
 
 def plant_parameters(config: dict) -> PlantParameters:
@@ -103,7 +107,9 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                  command: Optional[Trajectory] = None, seed: int = 0,
                  loop: LoopSettings = LoopSettings(),
                  start_m: Optional[Tuple[float, float]] = None,
-                 backlash_m: Tuple[float, float] = (0.0, 0.0)) -> SimulatedRun:
+                 start_nut_offset_m: Tuple[float, float] = (0.0, 0.0),
+                 take_ups: Optional[Tuple[BacklashTakeUp, BacklashTakeUp]] = None
+                 ) -> SimulatedRun:
     """
     Run ``command`` (the demand when None) once on the simulated rig of ``config``.
 
@@ -115,7 +121,10 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
     :param loop: the loops' law and limits.
     :param start_m: both rods' positions (m) when the run is started; the plan's first
         point when None.
-    :param backlash_m: the backlash each loop takes up (:class:`BacklashTakeUp`), m.
+    :param start_nut_offset_m: where each nut starts in its backlash band, from its rod
+        (m; 0: the middle).
+    :param take_ups: each loop's backlash take-up, kept from run to run as a loop keeps
+        it (it knows the nut's side); None: none.
     :raises flexure_ctrl.core.run.PlanError: the command path cannot be planned.
     """
     command = demand if command is None else command
@@ -128,16 +137,18 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
     tpdo_s = float(drives['tpdo_period_s'])
     start = plan.positions_m[0] if start_m is None else start_m
     actuators = [LeadScrewActuator(screw, np.random.default_rng(rng.integers(2**32)),
-                                   initial_position_m=float(position))
-                 for position in start]
+                                   initial_position_m=float(position),
+                                   initial_nut_offset_m=float(offset))
+                 for position, offset in zip(start, start_nut_offset_m)]
     limits = LoopLimits(loop.max_speed_m_s, design.stroke_limit_m, loop.max_accel_m_s2)
     controllers = []
-    for name, take_up_m in zip(ACTUATOR_NAMES, backlash_m):
+    take_ups = take_ups or (BacklashTakeUp(0.0), BacklashTakeUp(0.0))
+    for name, take_up in zip(ACTUATOR_NAMES, take_ups):
         controller = ActuatorController(ProportionalLoop(loop.gain_per_s,
                                                          loop.velocity_feedforward, limits),
                                         watchdog_timeout_s=1.0, stream_hold_max_age_s=0.0,
                                         path_tolerance_m=1.0,
-                                        take_up=BacklashTakeUp(take_up_m))
+                                        take_up=take_up)
         controller.load_trajectory(plan.sampler(name), _PATH_START_NS)
         controller.on_run_message(RunMessage(RunState.RUNNING, _PATH_START_NS), 0)
         controllers.append(controller)
@@ -188,7 +199,8 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                         command_m=np.asarray(command_points),
                         tracked_t_ns=_to_ns(tracked_t[kept]), tracked_m=tracked[kept]),
         loop_t_s=loops[:, 0], planned_m=loops[:, 1::3], measured_m=loops[:, 2::3],
-        commanded_m_s=loops[:, 3::3])
+        commanded_m_s=loops[:, 3::3], end_m=tuple(float(r) for r in rods[-1]),
+        end_nut_offset_m=tuple(a.nut_position_m - a.rod_position_m for a in actuators))
 
 
 def _to_ns(t_s: np.ndarray) -> np.ndarray:
@@ -201,7 +213,9 @@ def learning_series(design: Design, config: dict, corrector, iterations: int = 3
     """
     Learn the path on the simulated rig as ``flexure-ctrl demo`` does; return its summary.
 
-    The original run, ``iterations`` corrections (:class:`~flexure_ctrl.core.learning.
+    As in the demo, the first run starts with both rods at 0 (the lead-in brings them to
+    the path), each later one where the run before ended. The original run,
+    ``iterations`` corrections (:class:`~flexure_ctrl.core.learning.
     PathLearning` with ``corrector``, an :class:`~flexure_ctrl.core.correction.
     IterativeCorrector`), then the last command once more for the repeatability floor.
     The summary has the keys of the demo's ``summary.json`` that the acceptance reads
@@ -219,10 +233,16 @@ def learning_series(design: Design, config: dict, corrector, iterations: int = 3
     learning = PathLearning(corrector, take_up_backlash)
     command = None
     rows = []
+    start_m, nut_offset_m = (0.0, 0.0), (0.0, 0.0)
+    take_ups = (BacklashTakeUp(0.0), BacklashTakeUp(0.0))
     for index in range(iterations + 2):
         take_up_m = tuple(learning.take_up_m[name] for name in ACTUATOR_NAMES)
+        for take_up, value in zip(take_ups, take_up_m):
+            take_up.backlash_m = value
         simulated = simulate_run(design, config, demand, command, seed=seed * 1000 + index,
-                                 backlash_m=take_up_m)
+                                 start_m=start_m, start_nut_offset_m=nut_offset_m,
+                                 take_ups=take_ups)
+        start_m, nut_offset_m = simulated.end_m, simulated.end_nut_offset_m
         errors = path_errors(simulated.run)
         if index > iterations:
             floor = repeatability_floor(corrector.iterations[-1].errors, errors)

@@ -104,11 +104,13 @@ class LeadScrewActuator:
     :param rng: source of the potentiometer noise and of the drift direction; the same
         seed gives the same readings.
     :param initial_position_m: rod (and nut) position (m) at start, within the end stops.
+    :param initial_nut_offset_m: where the nut starts in the backlash band, from the rod
+        (m), clipped to the band: 0 is its middle.
     :raises SimulationParameterError: if the initial position is beyond an end stop.
     """
 
     def __init__(self, parameters: LeadScrewParameters, rng: np.random.Generator,
-                 initial_position_m: float = 0.0) -> None:
+                 initial_position_m: float = 0.0, initial_nut_offset_m: float = 0.0) -> None:
         if not abs(initial_position_m) <= parameters.end_stop_m:
             raise SimulationParameterError(
                 f'initial position {initial_position_m} m is beyond the end stops '
@@ -116,7 +118,9 @@ class LeadScrewActuator:
         self.parameters = parameters
         self._rng = rng
         self._velocity_m_s = 0.0
-        self._nut_m = float(initial_position_m)
+        half_band = 0.5 * parameters.backlash_m
+        self._nut_m = float(initial_position_m) + min(max(initial_nut_offset_m, -half_band),
+                                                      half_band)
         self._rod_m = float(initial_position_m)
         self._offset_m = 0.0
         self._drift_sign = 1.0 if rng.random() < 0.5 else -1.0

@@ -1,0 +1,107 @@
+"""Learning on the simulated rig in one process: the path, and the backlash taken up."""
+
+from flexure_ctrl.core.correction import IterativeCorrector, path_errors
+from flexure_ctrl.core.design import load_design
+from flexure_ctrl.core.learning import PathLearning, REVERSAL_HALF_WIDTH_S
+from flexure_ctrl.core.ploop import BacklashTakeUp
+from flexure_ctrl.core.trajectory import SinePath
+from flexure_ctrl.interface import ACTUATOR_NAMES
+from flexure_ctrl.sim.batch import learning_series, simulate_run
+from flexure_ctrl.sim.config import load_sim_config
+from flexure_ctrl.sim.plants import DESIGN_CYCLE, parse_seeds, PLANT_RANGES, plant_yaml
+from flexure_ctrl.sim.plants import random_plant
+import numpy as np
+import pytest
+import yaml
+
+BACKLASH_M = 2.5e-4
+# A plant with a known lag and dead band: 0.25 mm of backlash behind an 80 ms drive lag.
+PLANT = {'drives.backlash_m': BACKLASH_M, 'drives.lag_s': 0.08}
+
+
+@pytest.fixture(scope='module')
+def design():
+    return load_design('cfa')
+
+
+@pytest.fixture(scope='module')
+def series(design):
+    """The demo's learning on the plant, with and without the backlash taken up."""
+    config = load_sim_config(overrides=PLANT)
+    return {take_up: learning_series(design, config, IterativeCorrector(), 3, seed=4,
+                                     take_up_backlash=take_up)
+            for take_up in (True, False)}
+
+
+def last_max_mm(summary):
+    row = summary['iterations'][-1]
+    return np.array([row['max_abs_error_x_mm'], row['max_abs_error_y_mm']])
+
+
+def test_the_reversal_error_a_1_hz_q_leaves_is_removed_by_taking_up_the_backlash(series):
+    with_take_up, without = series[True], series[False]
+    # The path's 1 Hz learning alone leaves the sharp error at the reversals: its last
+    # run's maxima stand well above the floor.
+    floor = with_take_up['repeatability_floor']
+    assert last_max_mm(without)[1] > 1.5 * floor['max_abs_y_mm']
+    # Taken up, the same learning gets within 1.5 floors, in both axes.
+    assert np.all(last_max_mm(with_take_up) < 0.6 * last_max_mm(without))
+    assert last_max_mm(with_take_up)[1] < 1.5 * floor['max_abs_y_mm']
+    # What the loops took up is the plant's backlash, measured from the first run on.
+    taken = np.array([row['backlash_taken_up_mm'] for row in with_take_up['iterations']])
+    assert np.all(taken[0] == 0.0)
+    assert taken[1:] == pytest.approx(BACKLASH_M * 1e3, rel=0.25)
+    assert all(row['backlash_taken_up_mm'] == [0.0, 0.0] for row in without['iterations'])
+
+
+def test_a_run_whose_take_up_changes_has_its_reversals_bridged_not_learned(design):
+    config = load_sim_config(overrides=PLANT)
+    learning = PathLearning(IterativeCorrector())
+    run = simulate_run(design, config, SinePath(), seed=1)
+    cycles = {name: (run.loop_t_s, run.measured_m[:, column], run.commanded_m_s[:, column])
+              for column, name in enumerate(ACTUATOR_NAMES)}
+    learning.add_run(path_errors(run.run), cycles)
+    first = learning.corrector.iterations[-1]
+    # The paper's path reverses actuator 2 near 3.5 and 10.5 s and actuator 1 near 7 s.
+    grid = first.errors.grid_t_s
+    for reversal_s in (3.5, 7.0, 10.5):
+        assert first.spikes[np.abs(grid - reversal_s) < 0.1].all()
+    assert 3 * 2 * REVERSAL_HALF_WIDTH_S - 0.2 < first.spike_seconds() < 4 * 2 * 0.45
+    assert all(value > 1e-4 for value in learning.take_up_m.values())
+    assert any('taken up next run' in message for message in learning.messages)
+    # The next run is made with that take-up: it stays, and nothing is bridged.
+    again = simulate_run(design, config, SinePath(), seed=2, take_ups=tuple(
+        BacklashTakeUp(learning.take_up_m[name]) for name in ACTUATOR_NAMES))
+    learning.add_run(path_errors(again.run),
+                     {name: (again.loop_t_s, again.measured_m[:, column],
+                             again.commanded_m_s[:, column])
+                      for column, name in enumerate(ACTUATOR_NAMES)})
+    assert learning.corrector.iterations[-1].spike_seconds() < 0.5
+    # Without recorded loop states there is nothing to measure, and it says so.
+    learning = PathLearning(IterativeCorrector())
+    learning.add_run(path_errors(run.run), {})
+    assert learning.take_up_m == {name: 0.0 for name in ACTUATOR_NAMES}
+    assert all('no loop states' in message for message in learning.messages)
+
+
+def test_random_plants_are_drawn_by_seed_within_their_stated_ranges(tmp_path):
+    plants = [random_plant(seed) for seed in range(30)]
+    assert [p.design for p in plants[:6]] == list(DESIGN_CYCLE) * 2
+    assert random_plant(7) == random_plant(7) and random_plant(7) != random_plant(8)
+    for plant in plants:
+        for key, (low, high) in PLANT_RANGES.items():
+            values = np.atleast_1d(plant.overrides[key])
+            assert np.all((low <= values) & (values <= high)), (key, values)
+    # Each knob spreads over its range, not around one value.
+    backlash = [p.overrides['drives.backlash_m'] for p in plants]
+    assert max(backlash) - min(backlash) > 0.6 * PLANT_RANGES['drives.backlash_m'][1]
+    # Written as a --sim-config file, it is the same plant to the simulator.
+    path = tmp_path / 'plant.yaml'
+    path.write_text(plant_yaml(plants[4]))
+    from_file = load_sim_config(path)
+    assert from_file == load_sim_config(overrides=plants[4].overrides)
+    assert yaml.safe_load(path.read_text())['drives']['lag_s'] == plants[4].overrides[
+        'drives.lag_s']
+    assert parse_seeds('100-103,7') == [100, 101, 102, 103, 7]
+    with pytest.raises(ValueError, match='seeds'):
+        parse_seeds('5-2')
