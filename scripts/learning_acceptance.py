@@ -97,7 +97,8 @@ def verdict(design: str, summary: dict, max_ratio: float, rms_ratio: float) -> d
     rises = [tuple(b - a for a, b in zip(maxima[k - 1], maxima[k])) for k in range(2, len(rows))]
     checks = {
         'once': once[0] >= paper[0] and once[1] >= paper[1],
-        'floor': all(r <= max_ratio for r in ratios[:2]) and all(r <= rms_ratio for r in ratios[2:]),
+        'floor': (all(r <= max_ratio for r in ratios[:2])
+                  and all(r <= rms_ratio for r in ratios[2:])),
         'never_worse': all(r <= f for rise in rises for r, f in zip(rise, floor_max)),
     }
     return {'design': design, 'paper': paper, 'once_percent': once, 'maxima_mm': maxima,
@@ -111,8 +112,9 @@ def row_of(label: str, result: dict, run: str) -> str:
     m, r, c = result['maxima_mm'], result['ratios'], result['checks']
     series = ' → '.join(f'{mx:.3f}/{my:.3f}' for mx, my in m[1:])
     misses = [name for name, ok in c.items() if not ok]
-    return (f'| {label} | {run} | {m[0][0]:.2f} / {m[0][1]:.2f} | {result["once_percent"][0]:.0f} / '
-            f'{result["once_percent"][1]:.0f} [{result["paper"][0]} / {result["paper"][1]}] | '
+    return (f'| {label} | {run} | {m[0][0]:.2f} / {m[0][1]:.2f} | '
+            f'{result["once_percent"][0]:.0f} / {result["once_percent"][1]:.0f} '
+            f'[{result["paper"][0]} / {result["paper"][1]}] | '
             f'{series} | {result["last_rms_mm"][0]:.3f} / {result["last_rms_mm"][1]:.3f} | '
             f'{result["floor_max_mm"][0]:.3f} / {result["floor_max_mm"][1]:.3f}; '
             f'{result["floor_rms_mm"][0]:.3f} / {result["floor_rms_mm"][1]:.3f} | '

@@ -183,3 +183,17 @@ def test_stop_ends_an_armed_or_running_run():
     assert supervisor.stop()
     assert supervisor.message() == RunMessage(RunState.STOPPED, 2 * S, 'stopped on request')
     assert not supervisor.stop()
+
+
+def test_strokes_start_at_the_turning_points_and_ignore_smaller_wiggles():
+    times = np.arange(0.0, 14.0 + 1e-9, 0.01)
+    # The paper's path at one actuator (12 mm, from rest at its top), with a 20 um wiggle
+    # at 3 Hz, as a learned command may add about a turning point.
+    positions = 0.012 * np.cos(2 * np.pi * times / 14.0) + 2e-5 * np.sin(6 * np.pi * times)
+    starts, directions = JointSampler(times, positions, np.zeros_like(times)).strokes(5e-5)
+    assert directions == (-1, 1)
+    assert starts == pytest.approx((0.0, 7.0), abs=0.2)
+    # Finer than the wiggle, the wiggle about a turning point makes strokes of its own.
+    assert len(JointSampler(times, positions, np.zeros_like(times)).strokes(1e-6)[0]) > 2
+    assert JointSampler(times, np.zeros_like(times), np.zeros_like(times)).strokes(5e-5) == (
+        (), ())

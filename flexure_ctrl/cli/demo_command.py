@@ -25,9 +25,9 @@ from flexure_ctrl.cli import correct_command, report_command, up_command
 from flexure_ctrl.cli.launcher import InGraph, Launcher, node_command
 from flexure_ctrl.core.correction import IterativeCorrector, path_errors
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.core.learning import PathLearning
 from flexure_ctrl.core.repeatability import repeatability_floor
 from flexure_ctrl.core.run import RunMessage, RunState
-from flexure_ctrl.core.learning import PathLearning
 from flexure_ctrl.core.runs import load_actuator_states, load_last_run
 from flexure_ctrl.interface import (ACTUATOR_NAMES, COMMAND_TOPIC, CORRECTION_TOPICS, RECORDER,
                                     RECORDER_INTAKE, RUN_STATUS_NAME, RUN_TOPIC,

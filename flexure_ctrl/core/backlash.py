@@ -64,7 +64,7 @@ class BacklashEstimate:
 
 def commanded_travel(t_s: np.ndarray, velocity_m_s: np.ndarray) -> np.ndarray:
     """
-    The integrated velocity command (m) at each of a loop's recorded cycles.
+    Return the integrated velocity command (m) at each of a loop's recorded cycles.
 
     ``velocity_m_s[i]`` is the command sent at ``t_s[i]`` (s); it holds until the next.
     """
@@ -272,7 +272,7 @@ class BacklashLearner:
         return estimate
 
     def backlash_m(self, actuator: str) -> float:
-        """The reversal-weighted mean (m) of the actuator's estimates; 0 before any."""
+        """Return the reversal-weighted mean (m) of the actuator's estimates; 0 before any."""
         estimates = self.estimates.get(actuator, [])
         if not estimates:
             return 0.0

@@ -48,6 +48,9 @@ DEFAULT_SPIKE_THRESHOLD = 6.0
 # of 20, 0.8 passed 11.
 DEFAULT_LATER_GAIN = 1.0
 DEFAULT_SPIKE_MARGIN_S = 0.05
+# The update blends into its end values over this long at each end of the path (see
+# corrected_command); tuned on random plants 0-19 against 0.3, 1.0 and 1.5 s.
+DEFAULT_EDGE_BLEND_S = 0.6
 # A run is worse than the best so far when its max error exceeds the best's by more than
 # this many scatters (robust sigma above Q's band): on the simulated plants the floor's
 # max, two runs of one command apart, was 4 to 12 of them; its RMS was 1 to 1.8.
@@ -348,21 +351,36 @@ class CommandPath:
 
 def corrected_command(errors: PathErrors, gain: float = 1.0,
                       cutoff_hz: Optional[float] = DEFAULT_CUTOFF_HZ,
-                      taper_s: float = 0.1) -> CommandPath:
+                      taper_s: float = 0.1,
+                      edge_blend_s: float = DEFAULT_EDGE_BLEND_S) -> CommandPath:
     """
     Return ``c_{k+1} = c_k + gain * Q(p - e_k)`` on the path ``[0, duration]``.
+
+    The loops hold the plan's first point through the lead-in and its last after the end,
+    at rest. An update with a slope at either end would have the plan leave (or reach)
+    that hold with a step in velocity, which a lagging drive cannot follow: over
+    ``edge_blend_s`` at each end the update blends (raised cosine) from its value at the
+    end into itself, so that it moves the ends but adds no slope there.
 
     :param errors: the run's errors and its command ``c_k`` (:func:`path_errors`).
     :param gain: learning gain ``gamma`` (1 with ``cutoff_hz=None`` is the paper's Eq. 8).
     :param cutoff_hz: cutoff of the zero-phase low-pass ``Q`` (Hz); None: no filter.
     :param taper_s: length (s) of the ramp of the update next to a long gap.
+    :param edge_blend_s: length (s) of the blend at each end of the path; 0: none.
     """
     if not gain > 0.0:
         raise CorrectionError(f'the learning gain must be > 0, got {gain}')
+    if not edge_blend_s >= 0.0:
+        raise CorrectionError(f'edge_blend_s must be >= 0, got {edge_blend_s}')
     error = errors.grid_error_m if cutoff_hz is None else errors.smooth_error_m(cutoff_hz)
     weight = learning_weight(errors.grid_learnable, int(round(taper_s * errors.grid_rate_hz)))
-    command = errors.grid_command_m + gain * weight[:, None] * error
-    return CommandPath(*_on_path_exactly(errors, command))
+    t_s, command = _on_path_exactly(errors, errors.grid_command_m)
+    _, update = _on_path_exactly(errors, gain * weight[:, None] * error)
+    if edge_blend_s > 0.0:
+        for end, from_end_s in ((0, t_s - t_s[0]), (-1, t_s[-1] - t_s)):
+            blend = 0.5 - 0.5 * np.cos(np.pi * np.clip(from_end_s / edge_blend_s, 0.0, 1.0))
+            update = update[end] + blend[:, None] * (update - update[end])
+    return CommandPath(t_s, command + update)
 
 
 def _on_path_exactly(errors: PathErrors, values: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -431,13 +449,15 @@ class IterativeCorrector:
     :param spike_threshold: from the second run on, error spikes that the run before did
         not have (:func:`unrepeated_spikes`, this many robust standard deviations) are
         bridged, not learned; None learns everything.
+    :param edge_blend_s: see :func:`corrected_command`.
     """
 
     def __init__(self, gain: float = 1.0, later_gain: float = DEFAULT_LATER_GAIN,
                  cutoff_hz: float = DEFAULT_CUTOFF_HZ, min_gain: float = 0.1,
                  gain_shrink: float = 0.5, max_allowance: float = DEFAULT_MAX_ALLOWANCE,
                  rms_allowance: float = DEFAULT_RMS_ALLOWANCE,
-                 spike_threshold: Optional[float] = DEFAULT_SPIKE_THRESHOLD) -> None:
+                 spike_threshold: Optional[float] = DEFAULT_SPIKE_THRESHOLD,
+                 edge_blend_s: float = DEFAULT_EDGE_BLEND_S) -> None:
         for name, value in (('gain', gain), ('later_gain', later_gain)):
             if not 0.0 < value <= 2.0:
                 raise CorrectionError(f'the learning {name} must be in (0, 2], got {value}')
@@ -456,6 +476,9 @@ class IterativeCorrector:
         if spike_threshold is not None and not spike_threshold > 0.0:
             raise CorrectionError(f'spike_threshold must be > 0 (or None), got {spike_threshold}')
         self.spike_threshold = spike_threshold
+        if not edge_blend_s >= 0.0:
+            raise CorrectionError(f'edge_blend_s must be >= 0, got {edge_blend_s}')
+        self.edge_blend_s = float(edge_blend_s)
         self.iterations: List[Iteration] = []
         self.note = ''
 
@@ -465,7 +488,7 @@ class IterativeCorrector:
                      + np.sum(iteration.rms_error_m / np.maximum(first.rms_error_m, 1e-12)))
 
     def best(self) -> Iteration:
-        """The best run so far (see the class); :raises CorrectionError: if there is none."""
+        """Return the best run so far (see the class); :raises CorrectionError: if none."""
         if not self.iterations:
             raise CorrectionError('no run was added')
         return min(self.iterations, key=self._score)
@@ -523,15 +546,15 @@ class IterativeCorrector:
                 self.gain *= self.gain_shrink
                 source = best
                 self.note = (f'run {len(self.iterations) - 1} is worse than run '
-                             f'{self.iterations.index(best)} ({why}): stepping back to run '
-                             f'{self.iterations.index(best)}\'s command, learning from it with '
-                             f'gain {self.gain:.3g}')
+                             f'{self.iterations.index(best)} ({why}): stepping back to the '
+                             f'command of run {self.iterations.index(best)}, learning from it '
+                             f'with gain {self.gain:.3g}')
         if self.gain < self.min_gain:
             self.note += ('; ' if self.note else '') + (
                 f'learning stopped: gain {self.gain:.3g} below {self.min_gain:.3g}')
             return None
         return corrected_command(without_spikes(source.errors, source.spikes), self.gain,
-                                 self.cutoff_hz)
+                                 self.cutoff_hz, edge_blend_s=self.edge_blend_s)
 
 
 def reduction_percent(first: Sequence[float], later: Sequence[float]) -> Tuple[float, ...]:

@@ -92,15 +92,15 @@ class PathLearning:
         self.corrector.add_run(errors, bridged_s=bridged)
 
     def next_command(self) -> Optional[CommandPath]:
-        """The next run's command path (None: learning has stopped); see :attr:`note`."""
+        """Return the next run's command path (None: learning has stopped); see :attr:`note`."""
         return self.corrector.next_command()
 
     @property
     def note(self) -> str:
-        """What the last decision of the path's learning was, if anything but the usual."""
+        """Return what the path's learning last decided, if anything but the usual."""
         return self.corrector.note
 
     def take_up_arguments(self) -> Sequence[str]:
-        """``up`` options that set the loops' take-up to :attr:`take_up_m`."""
+        """Return the ``up`` options that set the loops' take-up to :attr:`take_up_m`."""
         return [f'--ros-arg={name}:backlash_m:={value:.9f}'
                 for name, value in self.take_up_m.items()]

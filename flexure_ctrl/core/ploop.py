@@ -267,9 +267,17 @@ class BacklashTakeUp:
         self._side = 0
         self._remaining_m = 0.0
 
-    def settle(self) -> None:
-        """Drop what is left of a pulse (a run starts); the nut keeps its side."""
+    def settle(self, side: int = 0) -> None:
+        """
+        Drop what is left of a pulse (a run starts), and take the nut to be on ``side``.
+
+        :param side: +1 or -1: the way the run's first stroke goes, whatever the lead-in
+            left (a loop settling on a point leaves the nut anywhere in its band: a pulse
+            there is as likely to add the band's error as to take it away); 0: keep it.
+        """
         self._remaining_m = 0.0
+        if side:
+            self._side = side
 
     def velocity(self, setpoint_velocity_m_s: float, dt_s: float,
                  last_command_m_s: float = 0.0) -> float:
@@ -429,7 +437,7 @@ class ActuatorController:
             self.following = Following.RUN
             self.problem = self.stop_reason = ''
             self.max_deviation_m = 0.0
-            self.take_up.settle()
+            self.take_up.settle(self._strokes[1][0] if self._strokes[1] else 0)
 
     def on_stream_setpoint(self, position_m: float, velocity_m_s: float, made_ns: int,
                            now_ns: int) -> bool:

@@ -201,10 +201,9 @@ class JointSampler:
                     + (3.0 * s2 - 2.0 * s) * m1) / h
         return position, velocity
 
-
     def strokes(self, min_travel_m: float) -> Tuple[Tuple[float, ...], Tuple[int, ...]]:
         """
-        The joint's strokes: when each starts (s) and which way it goes (+1, -1).
+        Return the joint's strokes: when each starts (s) and which way it goes (+1, -1).
 
         A stroke starts at a turning point of the positions (the first: where the joint
         leaves its start) and counts once the joint has moved ``min_travel_m`` (m) from

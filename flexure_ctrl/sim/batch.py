@@ -85,7 +85,7 @@ class SimulatedRun:
 
 
 def plant_parameters(config: dict) -> PlantParameters:
-    """The true arm's knobs from a simulator configuration (``plant:``)."""
+    """Return the true arm's knobs from a simulator configuration (``plant:``)."""
     plant = config['plant']
     return PlantParameters(
         gravity_sag_scale=float(plant['gravity_sag_scale']),
@@ -96,7 +96,7 @@ def plant_parameters(config: dict) -> PlantParameters:
 
 
 def screw_parameters(config: dict) -> LeadScrewParameters:
-    """Both drives' lead-screw knobs from a simulator configuration (``drives:``)."""
+    """Return both drives' lead-screw knobs from a simulator configuration (``drives:``)."""
     drives = config['drives']
     return LeadScrewParameters(**{key: float(drives[key]) for key in (
         'lag_s', 'max_speed_m_s', 'backlash_m', 'pot_noise_m', 'pot_quantum_m',

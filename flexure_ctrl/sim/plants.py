@@ -38,10 +38,11 @@ class RandomPlant:
     overrides: Dict[str, Union[float, int, List[float]]]
 
     def describe(self) -> str:
-        """One line: the knobs that matter most, in mm, ms, % and Hz."""
+        """Return one line: the knobs that matter most, in mm, ms, % and Hz."""
         o = self.overrides
-        return (f'seed {self.seed}: {self.design}, backlash {o["drives.backlash_m"] * 1e3:.3f} '
-                f'mm, lag {o["drives.lag_s"] * 1e3:.0f} ms, sag x{o["plant.gravity_sag_scale"]:.2f}'
+        return (f'seed {self.seed}: {self.design}, backlash '
+                f'{o["drives.backlash_m"] * 1e3:.3f} mm, lag {o["drives.lag_s"] * 1e3:.0f} ms, '
+                f'sag x{o["plant.gravity_sag_scale"]:.2f}'
                 f', pot noise {o["drives.pot_noise_m"] * 1e6:.0f} um, tracker '
                 f'{o["tracker.rate_hz"]:.0f} Hz, dropouts '
                 f'{o["tracker.dropout_probability"] * 100:.1f} %')
@@ -63,7 +64,7 @@ def random_plant(seed: int) -> RandomPlant:
 
 
 def plant_yaml(plant: RandomPlant) -> str:
-    """The plant as a ``--sim-config`` YAML document (nested keys)."""
+    """Return the plant as a ``--sim-config`` YAML document (nested keys)."""
     nested: dict = {}
     for dotted, value in plant.overrides.items():
         node = nested
@@ -76,7 +77,7 @@ def plant_yaml(plant: RandomPlant) -> str:
 
 
 def parse_seeds(text: str) -> List[int]:
-    """``'100-111'`` or ``'0,3,5-7'`` as a list of seeds; :raises ValueError: naming it."""
+    """Return ``'100-111'`` or ``'0,3,5-7'`` as a list of seeds; :raises ValueError: if bad."""
     seeds: List[int] = []
     for part in text.split(','):
         low, _, high = part.strip().partition('-')
