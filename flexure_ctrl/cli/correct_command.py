@@ -101,5 +101,5 @@ def run(arguments: argparse.Namespace) -> int:
         f'Q cutoff {arguments.cutoff_hz:g} Hz' if arguments.cutoff_hz else 'no filter'))
     if arguments.take_up_backlash:
         print('run it with the loops taking up the backlash measured: flexure-ctrl up '
-              f'--correction {out} ' + ' '.join(learning.take_up_arguments()))
+              f'--design DESIGN --correction {out} ' + ' '.join(learning.take_up_arguments()))
     return 0
