@@ -326,13 +326,13 @@ def test_a_jog_setpoint_made_before_a_run_ended_does_not_move_the_actuator_after
 def test_backlash_take_up_adds_exactly_the_backlash_on_each_reversal():
     take_up = BacklashTakeUp(1e-4, take_up_s=0.02)
     # The first move of a run: the nut's side is unknown, nothing added.
-    assert take_up.velocity(0.005, 0.002) == 0.0
+    assert take_up.velocity(1, 0.002) == 0.0
     rng = np.random.default_rng(3)
-    for direction in (-1.0, 1.0, -1.0):
+    for direction in (-1, 1, -1):
         added_m, steps = 0.0, 0
         for _ in range(100):  # uneven cycles, as a loop thread has them
             dt_s = float(rng.uniform(0.001, 0.004))
-            velocity_m_s = take_up.velocity(direction * 0.005, dt_s)
+            velocity_m_s = take_up.velocity(direction, dt_s)
             assert abs(velocity_m_s) <= 1e-4 / 0.02 + 1e-12  # never faster than the pulse
             steps += velocity_m_s != 0.0
             added_m += velocity_m_s * dt_s
@@ -340,14 +340,14 @@ def test_backlash_take_up_adds_exactly_the_backlash_on_each_reversal():
         assert 4 <= steps <= 21  # 20 ms of 1-4 ms cycles
 
 
-def test_backlash_take_up_keeps_its_side_through_slow_setpoints_and_can_be_off():
-    take_up = BacklashTakeUp(1e-4, min_speed_m_s=1e-4)
-    take_up.velocity(0.002, 0.002)
-    for speed in (5e-5, -5e-5, 0.0, -9e-5):  # slower than min_speed: no reversal
-        assert take_up.velocity(speed, 0.002) == 0.0
-    assert take_up.velocity(-2e-4, 0.002) < 0.0
+def test_backlash_take_up_keeps_its_side_through_a_held_setpoint_and_can_be_off():
+    take_up = BacklashTakeUp(1e-4)
+    take_up.velocity(1, 0.002)
+    for _ in range(5):  # held, the loop dithering below push speed: no reversal
+        assert take_up.velocity(0, 0.002, last_command_m_s=1e-3) == 0.0
+    assert take_up.velocity(-1, 0.002) < 0.0
     off = BacklashTakeUp(0.0)
-    assert [off.velocity(v, 0.002) for v in (0.01, -0.01, 0.01)] == [0.0, 0.0, 0.0]
+    assert [off.velocity(v, 0.002) for v in (1, -1, 1)] == [0.0, 0.0, 0.0]
     with pytest.raises(LoopConfigError, match='take_up_s'):
         BacklashTakeUp(1e-4, take_up_s=0.0)
 
@@ -355,19 +355,19 @@ def test_backlash_take_up_keeps_its_side_through_slow_setpoints_and_can_be_off()
 def test_a_step_the_loop_drives_to_sets_the_nut_side_for_the_next_move():
     """A run's lead-in: a held first point the loop drives to, then the path."""
     take_up = BacklashTakeUp(1e-4, take_up_s=0.02)
-    take_up.velocity(0.005, 0.002)          # the last run ended moving outward (+)
+    take_up.velocity(1, 0.002)              # the last run ended moving outward (+)
     # The lead-in: the setpoint steps back and holds; the loop drives inward fast.
-    assert take_up.velocity(0.0, 0.002, last_command_m_s=-0.02) == 0.0
+    assert take_up.velocity(0, 0.002, last_command_m_s=-0.02) == 0.0
     # The dither of a loop holding still (below push speed) does not move the side.
-    assert take_up.velocity(0.0, 0.002, last_command_m_s=0.001) == 0.0
+    assert take_up.velocity(0, 0.002, last_command_m_s=0.001) == 0.0
     # The path starts outward from there: a reversal of the nut, taken up.
-    added_m = sum(take_up.velocity(0.003, 0.002) * 0.002 for _ in range(20))
+    added_m = sum(take_up.velocity(1, 0.002) * 0.002 for _ in range(20))
     assert added_m == pytest.approx(1e-4, abs=1e-15)
     # Without the lead-in's push the same start would not count as a reversal.
     stale = BacklashTakeUp(1e-4, take_up_s=0.02)
-    stale.velocity(0.005, 0.002)
-    stale.velocity(0.0, 0.002)
-    assert stale.velocity(0.003, 0.002) == 0.0
+    stale.velocity(1, 0.002)
+    stale.velocity(0, 0.002)
+    assert stale.velocity(1, 0.002) == 0.0
     with pytest.raises(LoopConfigError, match='push_speed_m_s'):
         BacklashTakeUp(1e-4, push_speed_m_s=0.0)
 
@@ -420,7 +420,7 @@ def test_a_run_takes_up_each_reversal_of_its_plan_once_and_not_its_first_stroke(
 
     def run(backlash_m):
         take_up = BacklashTakeUp(backlash_m, take_up_s=0.02)
-        take_up.velocity_moving(1, 0.002)  # the last run left the nut pushing up
+        take_up.velocity(1, 0.002)  # the last run left the nut pushing up
         controller = ActuatorController(ProportionalLoop(20.0, 1.0, LIMITS), 1.0, 0.0, 1.0,
                                         take_up=take_up)
         controller.load_trajectory(JointSampler(times, positions, velocities), 0)

@@ -50,8 +50,6 @@ class BacklashEstimate:
     :param residual_rms_m: RMS of the potentiometer about the fitted model (m).
     :param velocity_scale: the rod's travel per commanded travel, a by-product (1: the
         drive moves exactly as commanded).
-    :param reversal_times_s: when each reversal fitted took place (s, on the clock of the
-        times given).
     """
 
     backlash_m: float
@@ -59,7 +57,6 @@ class BacklashEstimate:
     reversals: int
     residual_rms_m: float
     velocity_scale: float = 1.0
-    reversal_times_s: Tuple[float, ...] = ()
 
 
 def commanded_travel(t_s: np.ndarray, velocity_m_s: np.ndarray) -> np.ndarray:
@@ -207,9 +204,7 @@ def estimate_backlash(t_s: np.ndarray, pot_m: np.ndarray, travel_m: np.ndarray,
     squared, lag_s, backlash_m, scale = best
     return BacklashEstimate(backlash_m=backlash_m, lag_s=lag_s, reversals=len(windows),
                             residual_rms_m=math.sqrt(max(squared, 0.0) / count),
-                            velocity_scale=scale,
-                            reversal_times_s=tuple(0.5 * (float(t_s[start]) + float(t_s[stop - 1]))
-                                                   for start, stop, _ in windows))
+                            velocity_scale=scale)
 
 
 def estimate_from_cycles(t_s: np.ndarray, pot_m: np.ndarray, velocity_m_s: np.ndarray,

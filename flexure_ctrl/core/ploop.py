@@ -218,48 +218,43 @@ class BacklashTakeUp:
     reverses, the nut must first cross the dead band (``backlash_m`` wide) while the rod
     stands still; the proportional term only acts once that shows as error, so every
     reversal leaves a short, sharp error at the end point. This adds, when the setpoint
-    velocity changes sign, a velocity pulse of ``backlash_m / take_up_s`` for
+    turns from moving one way to the other, a velocity pulse of ``backlash_m / take_up_s`` for
     ``take_up_s``: the nut's crossing, fed forward. The pulse's integral is the
     backlash whatever the cycle times (the last cycle of a pulse is shortened).
 
     The learning measures each drive's backlash from its recorded runs
     (:mod:`flexure_ctrl.core.backlash`) and sets it for the next run. Until the setpoint
     has moved one way (the start of a run), the nut's side is unknown and nothing is
-    added. A setpoint velocity within ``+-min_speed_m_s`` keeps the side,
-    except that a held setpoint the loop itself drives to (a step, such as a run's
-    lead-in to its first point: faster than ``push_speed_m_s``) puts the nut on the side
-    of that drive, so the path's first move away from it is taken up if it reverses.
+    added. A held setpoint keeps the side, except that one the loop itself drives to (a
+    step, such as a run's lead-in to its first point: faster than ``push_speed_m_s``)
+    puts the nut on the side of that drive.
 
     A run's plan is known whole: :class:`ActuatorController` tells the take-up which
     way the plan's stroke in progress goes (:meth:`JointSampler.strokes`, strokes of at
-    least ``min_stroke_m``) through :meth:`velocity_moving`, so that a learned command's
-    small wiggles about a turning point are not taken for reversals of their own.
+    least ``min_stroke_m``), so that a learned command's small wiggles about a turning
+    point are not taken for reversals of their own.
 
     :param backlash_m: width of the dead band (m), 0 or more; 0 turns it off.
     :param take_up_s: duration of the pulse (s), > 0.
-    :param min_speed_m_s: setpoint speed (m/s) that counts as moving one way, > 0.
+    :param min_stroke_m: shortest stroke of a plan (m) that counts as a way of its own.
     :param push_speed_m_s: command speed (m/s) towards a held setpoint that counts as
         pushing the nut to one side, > 0; above the loop's dither on potentiometer noise.
     :raises LoopConfigError: a value out of range.
     """
 
-    __slots__ = ('backlash_m', 'take_up_s', 'min_speed_m_s', 'push_speed_m_s', 'min_stroke_m',
-                 '_side', '_remaining_m')
+    __slots__ = ('backlash_m', 'take_up_s', 'push_speed_m_s', 'min_stroke_m', '_side',
+                 '_remaining_m')
 
     def __init__(self, backlash_m: float, take_up_s: float = 0.02,
-                 min_speed_m_s: float = 1e-4, push_speed_m_s: float = 2e-3,
-                 min_stroke_m: float = 5e-5) -> None:
+                 push_speed_m_s: float = 2e-3, min_stroke_m: float = 5e-5) -> None:
         _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
                  f'backlash_m must be finite and >= 0, got {backlash_m!r}')
         _require(math.isfinite(take_up_s) and take_up_s > 0.0,
                  f'take_up_s must be finite and > 0, got {take_up_s!r}')
-        _require(math.isfinite(min_speed_m_s) and min_speed_m_s > 0.0,
-                 f'min_speed_m_s must be finite and > 0, got {min_speed_m_s!r}')
         self.backlash_m = float(backlash_m)
         self.take_up_s = float(take_up_s)
         _require(math.isfinite(push_speed_m_s) and push_speed_m_s > 0.0,
                  f'push_speed_m_s must be finite and > 0, got {push_speed_m_s!r}')
-        self.min_speed_m_s = float(min_speed_m_s)
         self.push_speed_m_s = float(push_speed_m_s)
         _require(math.isfinite(min_stroke_m) and min_stroke_m > 0.0,
                  f'min_stroke_m must be finite and > 0, got {min_stroke_m!r}')
@@ -279,25 +274,11 @@ class BacklashTakeUp:
         if side:
             self._side = side
 
-    def velocity(self, setpoint_velocity_m_s: float, dt_s: float,
-                 last_command_m_s: float = 0.0) -> float:
+    def velocity(self, moving: int, dt_s: float, last_command_m_s: float = 0.0) -> float:
         """
         Return the speed (m/s, signed) to add to this cycle's command, for ``dt_s`` (s).
 
-        :param last_command_m_s: the loop's previous velocity command (m/s).
-        """
-        if setpoint_velocity_m_s > self.min_speed_m_s:
-            moving = 1
-        elif setpoint_velocity_m_s < -self.min_speed_m_s:
-            moving = -1
-        else:
-            moving = 0
-        return self.velocity_moving(moving, dt_s, last_command_m_s)
-
-    def velocity_moving(self, moving: int, dt_s: float, last_command_m_s: float = 0.0) -> float:
-        """
-        :meth:`velocity` for a setpoint known to move one way (+1, -1) or to hold (0).
-
+        :param moving: which way the setpoint moves: +1, -1, or 0 when it holds.
         :param last_command_m_s: the loop's previous velocity command (m/s).
         """
         if self.backlash_m == 0.0:
@@ -536,7 +517,7 @@ class ActuatorController:
                         return self._ramp(dt_s)
                 output = self.loop.command(planned_m, velocity_m_s, measured_m)
                 if not self.loop.stroke_guarded:
-                    output += self.take_up.velocity_moving(
+                    output += self.take_up.velocity(
                         self._moving((now_ns - start_ns) / _NS_PER_S), dt_s, self.output_m_s)
                     limit = self.loop.limits.max_speed_m_s
                     output = min(max(output, -limit), limit)
