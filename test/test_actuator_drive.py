@@ -29,9 +29,13 @@ class FakeClient:
         self.send_error = None
         self.sent = []  # ('velocity', m/s) or ('quick stop', 0)
         self.starts = 0
+        self.syncs = 0  # SYNCs sent outside a command (a latched drive still reports)
 
     def poll(self):
         pass
+
+    def sync(self):
+        self.syncs += 1
 
     def check_health(self, now_s):
         if self.health_error is not None:

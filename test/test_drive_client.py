@@ -16,7 +16,8 @@ from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_client import DriveClient, DriveError, DriveFaultError
 from flexure_ctrl.core.drive_client import DriveTimeoutError, HeartbeatLostError
 from flexure_ctrl.core.drive_client import SdoAbortError
-from flexure_ctrl.sim.drive import SIMULATED_DRIVE_EDS
+from flexure_ctrl.core.drive_units import DriveUnits
+from flexure_ctrl.sim.drive import VENDORS
 from helpers import wait_for
 import pytest
 
@@ -49,15 +50,17 @@ class Sniffer:
 def commissioned_bus(channel: str) -> can.BusABC:
     """Open a master's bus on ``channel`` and commission the drive over it."""
     bus = can.Bus(interface='virtual', channel=channel)
-    commission(bus, DriveDescription(str(find_config_file(SIMULATED_DRIVE_EDS)), NODE_ID,
-                                     1e6, stroke_limit_m=0.02, master_node_id=120))
+    commission(bus, DriveDescription(str(find_config_file(VENDORS['flexure_ctrl'].eds_file)),
+                                     NODE_ID, DriveUnits(), stroke_limit_m=0.02,
+                                     master_node_id=120))
     return bus
 
 
 @pytest.fixture
 def client(channel, rig) -> Iterator[DriveClient]:
     bus = commissioned_bus(channel)
-    with DriveClient(bus, NODE_ID, heartbeat_timeout_s=0.3, owns_bus=True) as drive_client:
+    with DriveClient(bus, NODE_ID, heartbeat_timeout_s=0.3, owns_bus=True,
+                     sync=True) as drive_client:
         yield drive_client
 
 
@@ -210,7 +213,7 @@ def test_sdo_abort_carries_the_abort_code(client, rig):
 
 def test_shutdown_is_idempotent_and_disables(channel, rig):
     bus = commissioned_bus(channel)
-    client = DriveClient(bus, NODE_ID, owns_bus=True)
+    client = DriveClient(bus, NODE_ID, owns_bus=True, sync=True)
     client.start(timeout_s=2.0)
     client.shutdown()
     wait_until(lambda: rig.drive.state is DriveState.SWITCH_ON_DISABLED, 1.0, 'disabled')
@@ -223,7 +226,7 @@ def test_shutdown_is_idempotent_and_disables(channel, rig):
 
 def test_shutdown_never_raises_when_the_bus_is_gone(channel, rig):
     bus = commissioned_bus(channel)
-    client = DriveClient(bus, NODE_ID)
+    client = DriveClient(bus, NODE_ID, sync=True)
     client.start(timeout_s=2.0)
     bus.shutdown()
     client.shutdown()
@@ -234,8 +237,8 @@ def test_a_position_reading_carries_the_time_its_frame_was_received(client, rig)
     client.start(timeout_s=2.0)
     before_s = time.time()
     count = client.tpdo_count
-    wait_until(lambda: (client.poll() or True) and client.tpdo_count > count + 2, 1.0,
-               'TPDOs')
+    wait_until(lambda: (client.sync() or client.poll() or True)
+               and client.tpdo_count > count + 2, 1.0, 'TPDOs')
     # The virtual bus stamps frames with the system clock, as SocketCAN and socketcand do.
     assert before_s <= client.position_time_s <= time.time()
 

@@ -161,14 +161,14 @@ class Bench:
             self.map_pdos()
 
     def map_pdos(self):
-        """Map RPDO1/TPDO1 as the actuator loop does, over SDO (CiA 301 order)."""
+        """Map RPDO1/TPDO1 as the actuator loop does, over SDO (CiA 301 order): TPDO1 on SYNC."""
         for index, subindex, value, size in (
                 (0x1400, 1, 0x80000200 + NODE, 4), (0x1600, 0, 0, 1),
                 (0x1600, 1, 0x60400010, 4), (0x1600, 2, 0x60FF0020, 4), (0x1600, 0, 2, 1),
                 (0x1400, 1, 0x200 + NODE, 4),
                 (0x1800, 1, 0x80000180 + NODE, 4), (0x1A00, 0, 0, 1),
                 (0x1A00, 1, 0x60410010, 4), (0x1A00, 2, 0x60640020, 4), (0x1A00, 0, 2, 1),
-                (0x1800, 1, 0x180 + NODE, 4)):
+                (0x1800, 2, 1, 1), (0x1800, 1, 0x180 + NODE, 4)):
             answer = self.sdo(Sdo('download', index, subindex, value, size))
             assert answer.kind == 'download_ok', (hex(index), subindex, answer)
 
@@ -204,10 +204,12 @@ class Bench:
         assert len(answers) == 1
         return cia402.decode_sdo(answers[0], from_server=True)
 
-    def rpdo(self, controlword, velocity_counts_s=0, dt_s=1e-3):
-        """Send RPDO1, tick once; return the answering TPDOs as ``(statusword, counts)``."""
+    def rpdo(self, controlword, velocity_counts_s=0, dt_s=1e-3, sync=True):
+        """Send RPDO1 (and a SYNC), tick once; return the TPDOs as ``(statusword, counts)``."""
         self.frames()
         self.send(cia402.RPDO1_BASE + NODE, cia402.encode_pdo(controlword, velocity_counts_s))
+        if sync:
+            self.send(cia402.SYNC_COB_ID, b'')
         self.tick(dt_s)
         return [cia402.decode_pdo(data) for data in self.of(cia402.TPDO1_BASE, self.frames())]
 
@@ -324,7 +326,7 @@ def test_controlword_sequence_reaches_operation_enabled_in_tpdo_statuswords(benc
     seen = []
     for word in (Controlword.SHUTDOWN, Controlword.SWITCH_ON, Controlword.ENABLE_OPERATION):
         answers = rig.rpdo(word)
-        assert len(answers) == 1  # every RPDO is answered by exactly one TPDO at once
+        assert len(answers) == 1  # the SYNC after each RPDO is answered by one TPDO at once
         statusword, _ = answers[0]
         assert statusword & cia402.SW_REMOTE
         seen.append(cia402.decode_state(statusword))
@@ -334,15 +336,58 @@ def test_controlword_sequence_reaches_operation_enabled_in_tpdo_statuswords(benc
 
 def test_event_timer_tpdo_while_operational(bench):
     rig = bench(tpdo_period_s=0.01)
+    rig.sdo(Sdo('download', 0x1800, 2, 255, 1))
     rig.start()
     rig.frames()
     tpdos = []
     for _ in range(105):
         rig.tick()
         tpdos += rig.of(cia402.TPDO1_BASE, rig.frames())
-    assert len(tpdos) == 10
+    # One at once (its content is new), then one each 10 ms: it stands still.
+    assert len(tpdos) == 11
     assert cia402.decode_state(cia402.decode_pdo(tpdos[0])[0]) is \
         DriveState.SWITCH_ON_DISABLED
+
+
+def test_an_rpdo_is_applied_at_once_and_never_answered_by_a_tpdo(bench):
+    rig = bench()
+    rig.enable()
+    assert rig.rpdo(Controlword.ENABLE_OPERATION, 5000, sync=False) == []
+    assert rig.drive.actuator.velocity_m_s > 0.0  # applied in the tick it arrived
+    assert len(rig.rpdo(Controlword.ENABLE_OPERATION, 5000)) == 1  # the SYNC's
+
+
+def test_a_tpdo_of_type_n_goes_on_every_nth_sync(bench):
+    rig = bench()
+    rig.sdo(Sdo('download', 0x1800, 2, 3, 1))
+    rig.start()
+    answered = []
+    for _ in range(9):
+        rig.frames()
+        rig.send(cia402.SYNC_COB_ID, b'')
+        rig.tick()
+        answered.append(len(rig.of(cia402.TPDO1_BASE, rig.frames())))
+    assert answered == [0, 0, 1] * 3
+
+
+def test_an_event_driven_tpdo_goes_on_change_no_sooner_than_its_inhibit_time(bench):
+    rig = bench(parameters=ideal(pot_noise_m=0.0), vendor='sync_only')
+    rig.sdo(Sdo('download', 0x1800, 2, 255, 1))
+    rig.sdo(Sdo('download', 0x1800, 3, 50, 2))  # 5 ms, in 100 us
+    rig.enable()
+    times = []
+    for _ in range(100):  # 10 mm/s: the position changes every tick
+        if rig.rpdo(Controlword.ENABLE_OPERATION, 10000, sync=False):
+            times.append(rig.now_s)
+    gaps = np.diff(times)
+    assert len(times) >= 15 and gaps.min() >= 0.005 - 1e-9 and gaps.max() <= 0.006 + 1e-9
+    rig.rpdo(Controlword.ENABLE_OPERATION, 0, sync=False)
+    for _ in range(500):  # coming to rest (lag 0.05 s)
+        rig.tick()
+    rig.frames()
+    for _ in range(20):
+        rig.tick()
+    assert rig.of(cia402.TPDO1_BASE, rig.frames()) == []
 
 
 def test_velocity_command_moves_the_pot_reading(bench):

@@ -111,6 +111,10 @@ class ActuatorDrive:
 
     def _latched_cycle(self, client: DriveClient, now_s: float) -> bool:
         """Latched: keep the picture of the drive, command nothing, never show it stale."""
+        try:
+            client.sync()  # a drive whose TPDO1 is on SYNC still reports its position
+        except (can.CanError, OSError):
+            pass  # the bus failed: the silence below says so
         silent_s = now_s - (client.last_tpdo_s or 0.0)
         stale = client.nmt_state is NmtState.STOPPED or silent_s > client.tpdo_timeout_s
         if stale and not self.position_stale:

@@ -5,9 +5,9 @@ Both ends use this module: the actuator loop (the CANopen master) and the simula
 drive (the slave). Nothing here touches a bus; every function maps integers to frame
 payloads (``bytes``) and back.
 
-Units on the wire: position in drive counts and velocity in counts per second, both
-signed 32-bit. The conversion to metres is a parameter of each end (``counts_per_m``,
-1e6 by default: one count per micrometre).
+Units on the wire: position and velocity in the drive's own units, both signed 32-bit.
+The conversion to SI is a parameter of each end
+(:class:`~flexure_ctrl.core.drive_units.DriveUnits`).
 
 PDO mapping used by the lead-screw drives (fixed, as configured on the rig):
 
@@ -25,6 +25,7 @@ from flexure_ctrl.core.errors import FlexureCtrlError
 # COB-ID bases (CiA 301 pre-defined connection set).
 NMT_COB_ID = 0x000
 EMCY_BASE = 0x080
+SYNC_COB_ID = 0x080  # the SYNC frame (no data); EMCY ids add a node id to it
 TPDO1_BASE = 0x180
 RPDO1_BASE = 0x200
 SDO_SERVER_TO_CLIENT_BASE = 0x580

@@ -1,5 +1,5 @@
 """
-Commission a CiA 402 drive from its EDS: check it, map its PDOs, set its safety objects.
+Commission a CiA 402 drive from its EDS: check it, map its PDOs, set its units and safety.
 
 A vendor drive out of the box maps its PDOs its own way, produces no heartbeat and keeps
 moving when its master dies. :func:`commission` makes it the drive the actuator loop
@@ -8,41 +8,55 @@ the loop's lean 500 Hz PDO path takes the bus:
 
 1. **Check the drive:** 0x1000 device type must be CiA 402; 0x1018 vendor id and
    product code must match the expected identity when one is given.
-2. **Map the PDOs** (disable, map, transmission type and event timer, enable, read back):
-   RPDO1 controlword 0x6040 + target velocity 0x60FF; TPDO1 statusword 0x6041 + position
-   actual value 0x6064.
-3. **Drive-side safety:** producer heartbeat 0x1017; consumer heartbeat 0x1016:01 on the
-   master's node id; abort connection option 0x6007 = 3 (quick stop); quick-stop
-   deceleration 0x6085 and profile acceleration/deceleration 0x6083/0x6084; the software
-   position limits 0x607D must contain the actuator's stroke.
+2. **Units:** what the drive states in 0x60A8-0x60AA (and 0x608F) must agree with the
+   rig file's :class:`~flexure_ctrl.core.drive_units.DriveUnits`.
+3. **Map the PDOs** (disable, map, transmission type, enable, read back): RPDO1
+   controlword 0x6040 + target velocity 0x60FF, applied at once (type 255); TPDO1
+   statusword 0x6041 + position actual value 0x6064, sent on each SYNC from the loop
+   (type 1) or, where the rig file asks and the drive has one, on its event timer.
+4. **Dead-PC protection**, by what the drive has: a consumer heartbeat 0x1016:01 on the
+   master's node id, else node guarding (guard time 0x100C, life time factor 0x100D),
+   else none if the rig file allows it; abort connection option 0x6007 = 3 (quick stop).
+5. **Motion limits:** quick-stop deceleration 0x6085, profile acceleration/deceleration
+   0x6083/0x6084 in the drive's units; software position limits 0x607D written from the
+   stroke, or checked to contain it where the drive does not let them be written.
 
-Each failure raises :class:`CommissioningError` naming the object (index:subindex and its
-EDS name), and for an SDO abort its code and meaning. No rclpy here; SI units at the API,
-drive counts on the wire (``counts_per_m``).
+Objects CiA 402 makes optional are used where present; their absence is listed in
+:attr:`Commissioned.notes`. Each failure raises :class:`CommissioningError` naming the
+object (index:subindex and its EDS name), and for an SDO abort its code and meaning. No
+rclpy here; SI units at the API, the drive's units on the wire.
 """
 
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 import logging
+import math
 from os import PathLike
-from typing import Iterator, List, Optional, Tuple, Union
+from typing import Dict, Iterator, List, Optional, Tuple, Union
 
 import can
 import canopen
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
+from flexure_ctrl.core import drive_units
 from flexure_ctrl.core.drive_client import DriveError
+from flexure_ctrl.core.drive_units import DriveUnits, DriveUnitsError
 from flexure_ctrl.core.errors import one_line
 
 CIA_402_PROFILE = 402
 DEVICE_TYPE = 0x1000
-PRODUCER_HEARTBEAT = 0x1017
+GUARD_TIME = 0x100C
+LIFE_TIME_FACTOR = 0x100D
 CONSUMER_HEARTBEAT = 0x1016
+PRODUCER_HEARTBEAT = 0x1017
 IDENTITY = 0x1018
 RPDO1_COMMUNICATION = 0x1400
 RPDO1_MAPPING = 0x1600
 TPDO1_COMMUNICATION = 0x1800
 TPDO1_MAPPING = 0x1A00
+PDO_TRANSMISSION_TYPE = 2
+PDO_INHIBIT_TIME = 3
+PDO_EVENT_TIMER = 5
 ABORT_CONNECTION_OPTION = 0x6007
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
@@ -53,16 +67,21 @@ PROFILE_DECELERATION = 0x6084
 QUICK_STOP_DECELERATION = 0x6085
 TARGET_VELOCITY = 0x60FF
 ABORT_CONNECTION_QUICK_STOP = 3
+TRANSMISSION_SYNC = 1
 TRANSMISSION_EVENT_DRIVEN = 255
 COB_ID_INVALID = 1 << 31
+SDO_ABORT_READ_ONLY = 0x06010002
 
-# (index, subindex) of every object commissioning reads or writes, and what it is called
-# in CiA 301 / CiA 402 (for a drive whose EDS lacks it).
+# How the drive is protected against a dead master, and how its TPDO is timed.
+PROTECTIONS = ('auto', 'heartbeat', 'guarding', 'none')
+TPDO_TIMINGS = ('sync', 'event_timer')
+
+# (index, subindex) of every object commissioning needs, and what it is called in
+# CiA 301 / CiA 402 (for a drive whose EDS lacks it).
 REQUIRED_OBJECTS = {
     (DEVICE_TYPE, 0): 'Device type',
     (IDENTITY, 1): 'Vendor-ID',
     (IDENTITY, 2): 'Product code',
-    (CONSUMER_HEARTBEAT, 1): 'Consumer heartbeat time',
     (PRODUCER_HEARTBEAT, 0): 'Producer heartbeat time',
     (RPDO1_COMMUNICATION, 1): 'RPDO1 COB-ID',
     (RPDO1_COMMUNICATION, 2): 'RPDO1 transmission type',
@@ -71,20 +90,26 @@ REQUIRED_OBJECTS = {
     (RPDO1_MAPPING, 2): 'RPDO1 mapping entry 2',
     (TPDO1_COMMUNICATION, 1): 'TPDO1 COB-ID',
     (TPDO1_COMMUNICATION, 2): 'TPDO1 transmission type',
-    (TPDO1_COMMUNICATION, 5): 'TPDO1 event timer',
     (TPDO1_MAPPING, 0): 'TPDO1 number of mapped objects',
     (TPDO1_MAPPING, 1): 'TPDO1 mapping entry 1',
     (TPDO1_MAPPING, 2): 'TPDO1 mapping entry 2',
-    (ABORT_CONNECTION_OPTION, 0): 'Abort connection option code',
     (CONTROLWORD, 0): 'Controlword',
     (STATUSWORD, 0): 'Statusword',
     (POSITION_ACTUAL_VALUE, 0): 'Position actual value',
-    (SOFTWARE_POSITION_LIMIT, 1): 'Min position limit',
-    (SOFTWARE_POSITION_LIMIT, 2): 'Max position limit',
     (PROFILE_ACCELERATION, 0): 'Profile acceleration',
-    (PROFILE_DECELERATION, 0): 'Profile deceleration',
     (QUICK_STOP_DECELERATION, 0): 'Quick stop deceleration',
     (TARGET_VELOCITY, 0): 'Target velocity',
+}
+# Used where the drive has them; their absence is reported (Commissioned.notes).
+OPTIONAL_OBJECTS = {
+    (ABORT_CONNECTION_OPTION, 0): ('Abort connection option code',
+                                   'the drive reacts to a lost master its own way'),
+    (PROFILE_DECELERATION, 0): ('Profile deceleration',
+                                'the drive decelerates at its own profile deceleration'),
+    (TPDO1_COMMUNICATION, PDO_EVENT_TIMER): ('TPDO1 event timer',
+                                             'TPDO1 is sent on SYNC only'),
+    (SOFTWARE_POSITION_LIMIT, 1): ('Software position limit',
+                                   "the loop's stroke clamp is the only position limit"),
 }
 RPDO_MAP = ((CONTROLWORD, 0, 16), (TARGET_VELOCITY, 0, 32))
 TPDO_MAP = ((STATUSWORD, 0, 16), (POSITION_ACTUAL_VALUE, 0, 32))
@@ -105,25 +130,34 @@ class DriveDescription:
 
     :param eds_file: the drive's EDS or DCF.
     :param node_id: its CANopen node id.
-    :param counts_per_m: position counts per m (velocity: counts/s per m/s).
-    :param stroke_limit_m: the actuator moves within +- this (m); the drive's software
-        position limits must contain it.
+    :param units: scales between SI and the drive's units, and the unit names expected.
+    :param stroke_limit_m: the actuator moves within +- this (m); written to the drive's
+        software position limits 0x607D (or, where they cannot be written, they must
+        contain it).
     :param master_node_id: the node id this loop's heartbeat carries.
-    :param master_heartbeat_period_s: how often the loop sends its heartbeat (s).
+    :param master_heartbeat_period_s: how often the loop sends its heartbeat, or (node
+        guarding) its guard request: the guard time 0x100C (s).
     :param consumer_heartbeat_s: the drive acts when the loop's heartbeat is silent this
-        long (s); more than the master's period.
-    :param heartbeat_period_s: the drive's own heartbeat period (s).
-    :param tpdo_period_s: event timer of the position TPDO (s).
+        long (s); with node guarding, its life time (0x100C x 0x100D). More than the
+        master's period.
+    :param heartbeat_period_s: the drive's own heartbeat period (s); with node guarding
+        the drive sends none (CiA 301: one or the other) and its guard answers show it
+        lives.
+    :param tpdo_period_s: event timer of the position TPDO (s), for ``tpdo_timing``
+        ``event_timer``.
     :param quick_stop_decel_m_s2: deceleration of a quick stop (m/s^2).
     :param profile_accel_m_s2: profile acceleration (m/s^2).
     :param profile_decel_m_s2: profile deceleration (m/s^2).
     :param vendor_id: expected 0x1018:01; None: not checked.
     :param product_code: expected 0x1018:02; None: not checked.
+    :param protection: ``heartbeat`` (0x1016), ``guarding`` (0x100C/0x100D), ``auto``
+        (the first of those the EDS has) or ``none`` (only if the rig file says so).
+    :param tpdo_timing: ``sync`` (TPDO1 on each SYNC the loop sends) or ``event_timer``.
     """
 
     eds_file: str
     node_id: int
-    counts_per_m: float
+    units: DriveUnits
     stroke_limit_m: float
     master_node_id: int
     master_heartbeat_period_s: float = 0.1
@@ -135,6 +169,8 @@ class DriveDescription:
     profile_decel_m_s2: float = 0.2
     vendor_id: Optional[int] = None
     product_code: Optional[int] = None
+    protection: str = 'auto'
+    tpdo_timing: str = 'sync'
 
     def __post_init__(self) -> None:
         if not 1 <= self.node_id <= 127 or not 1 <= self.master_node_id <= 127:
@@ -148,21 +184,78 @@ class DriveDescription:
                 f"the drive's consumer heartbeat time ({self.consumer_heartbeat_s} s) must "
                 f'exceed the master heartbeat period ({self.master_heartbeat_period_s} s) '
                 'and both be > 0 and <= 65.535 s')
+        if self.protection not in PROTECTIONS:
+            raise CommissioningError(f'drive.protection must be one of '
+                                     f'{", ".join(PROTECTIONS)}, got {self.protection!r}')
+        if self.tpdo_timing not in TPDO_TIMINGS:
+            raise CommissioningError(f'drive.tpdo_timing must be one of '
+                                     f'{", ".join(TPDO_TIMINGS)}, got {self.tpdo_timing!r}')
+
+    @property
+    def guarding(self) -> Tuple[int, int]:
+        """Guard time (ms, 0x100C) and life time factor (0x100D) of node guarding."""
+        guard_ms = max(1, int(round(self.master_heartbeat_period_s * 1000.0)))
+        return guard_ms, min(255, max(2, math.ceil(
+            self.consumer_heartbeat_s * 1000.0 / guard_ms - 1e-9)))
+
+    def resolved(self, dictionary: objectdictionary.ObjectDictionary) -> 'DriveDescription':
+        """
+        Return the description with ``protection`` chosen from what the EDS has.
+
+        :raises CommissioningError: the drive lacks the protection asked for, or (auto)
+            has none and the rig file does not allow running unprotected.
+        """
+        has = {'heartbeat': od_entry(dictionary, CONSUMER_HEARTBEAT, 1) is not None,
+               'guarding': (od_entry(dictionary, GUARD_TIME, 0) is not None
+                            and od_entry(dictionary, LIFE_TIME_FACTOR, 0) is not None)}
+        has['none'] = True
+        where = f'EDS {self.eds_file}'
+        if self.protection == 'auto':
+            for protection in ('heartbeat', 'guarding'):
+                if has[protection]:
+                    return replace(self, protection=protection)
+            raise CommissioningError(
+                f'{where}: the drive has neither a consumer heartbeat (0x1016:01) nor node '
+                'guarding (0x100C, 0x100D), so it would keep moving if this PC died; set '
+                'drive.protection: none in the rig file to run it unprotected')
+        if not has[self.protection]:
+            needs = '0x1016:01' if self.protection == 'heartbeat' else '0x100C and 0x100D'
+            raise CommissioningError(f'{where}: drive.protection is {self.protection} but '
+                                     f'the drive has no {needs}')
+        if self.tpdo_timing == 'event_timer' and od_entry(
+                dictionary, TPDO1_COMMUNICATION, PDO_EVENT_TIMER) is None:
+            raise CommissioningError(f'{where}: drive.tpdo_timing is event_timer but the '
+                                     'drive has no TPDO1 event timer (0x1800:05): use sync')
+        return self
 
 
 @dataclass(frozen=True)
 class Commissioned:
-    """What commissioning found: identity and the software position limits (m)."""
+    """
+    What commissioning found and set.
+
+    :param position_limits_m: the drive's software position limits (m); +-inf when it
+        has none.
+    :param protection: ``heartbeat``, ``guarding`` or ``none``.
+    :param tpdo_timing: ``sync`` or ``event_timer``.
+    :param units_stated: what the drive states of its units, by quantity.
+    :param notes: optional objects absent and checks not made, one line each.
+    """
 
     device_type: int
     vendor_id: int
     product_code: int
     position_limits_m: Tuple[float, float]
+    protection: str = 'heartbeat'
+    tpdo_timing: str = 'sync'
+    units_stated: Dict[str, str] = field(default_factory=dict)
+    notes: Tuple[str, ...] = ()
 
 
-def load_eds(path: Union[str, PathLike], node_id: int) -> objectdictionary.ObjectDictionary:
+def load_eds(path: Union[str, PathLike], node_id: int,
+             check: bool = True) -> objectdictionary.ObjectDictionary:
     """
-    Read a drive's EDS or DCF and check it lists every object commissioning uses.
+    Read a drive's EDS or DCF and (``check``) that it lists every object commissioning needs.
 
     :raises CommissioningError: the file cannot be read or lacks an object, named.
     """
@@ -170,7 +263,7 @@ def load_eds(path: Union[str, PathLike], node_id: int) -> objectdictionary.Objec
         dictionary = canopen.import_od(str(path), node_id)
     except (OSError, ValueError, KeyError) as error:
         raise CommissioningError(f'EDS {path}: cannot be read: {one_line(error)}') from None
-    for (index, subindex), name in REQUIRED_OBJECTS.items():
+    for (index, subindex), name in REQUIRED_OBJECTS.items() if check else ():
         if od_entry(dictionary, index, subindex) is None:
             raise CommissioningError(f'EDS {path}: no object {_key(index, subindex)} '
                                      f'({name}), which commissioning needs')
@@ -203,6 +296,19 @@ class _Sdo:
         self._node = node
         self._eds_file = eds_file
 
+    @property
+    def node_id(self) -> int:
+        """The drive's node id."""
+        return self._node.id
+
+    def has(self, index: int, subindex: int = 0) -> bool:
+        """Whether the drive's EDS lists the object."""
+        return self._variable(index, subindex) is not None
+
+    def writable(self, index: int, subindex: int = 0) -> bool:
+        """Whether the EDS says the object may be written."""
+        return self._variable(index, subindex).writable
+
     def _variable(self, index: int, subindex: int) -> objectdictionary.ODVariable:
         return od_entry(self._node.object_dictionary, index, subindex)
 
@@ -221,7 +327,8 @@ class _Sdo:
         except (SdoAbortedError, SdoCommunicationError) as error:
             self._fail('reading', index, subindex, error)
 
-    def write(self, index: int, subindex: int, value: int) -> None:
+    def write(self, index: int, subindex: int, value: int, read_only_ok: bool = False) -> None:
+        """Write one object; with ``read_only_ok`` a read-only abort is not an error."""
         variable = self._variable(index, subindex)
         try:
             data = variable.encode_raw(value)
@@ -232,6 +339,8 @@ class _Sdo:
         try:
             self._node.sdo.download(index, subindex, data)
         except (SdoAbortedError, SdoCommunicationError) as error:
+            if read_only_ok and getattr(error, 'code', None) == SDO_ABORT_READ_ONLY:
+                return
             self._fail(f'writing {value} to', index, subindex, error)
 
 
@@ -250,6 +359,7 @@ def commission(bus: can.BusABC, description: DriveDescription,
     """
     if dictionary is None:
         dictionary = load_eds(description.eds_file, description.node_id)
+    description = description.resolved(dictionary)
     with sdo_session(bus, description.node_id, dictionary, sdo_timeout_s) as node:
         return _commission(_Sdo(node, description.eds_file), description)
 
@@ -291,30 +401,90 @@ def _commission(sdo: _Sdo, description: DriveDescription) -> Commissioned:
         if expected is not None and expected != found:
             raise CommissioningError(f'drive {node_id}: {what} ({key}) is 0x{found:08X}, '
                                      f'expected 0x{expected:08X}: is this the right drive?')
-    _map_pdo(sdo, RPDO1_COMMUNICATION, RPDO1_MAPPING, 0x200 + node_id, RPDO_MAP, None)
-    _map_pdo(sdo, TPDO1_COMMUNICATION, TPDO1_MAPPING, 0x180 + node_id, TPDO_MAP,
-             int(round(description.tpdo_period_s * 1000.0)))
-    counts = description.counts_per_m
-    sdo.write(PRODUCER_HEARTBEAT, 0, int(round(description.heartbeat_period_s * 1000.0)))
-    sdo.write(CONSUMER_HEARTBEAT, 1, (description.master_node_id << 16)
-              | int(round(description.consumer_heartbeat_s * 1000.0)))
-    sdo.write(ABORT_CONNECTION_OPTION, 0, ABORT_CONNECTION_QUICK_STOP)
+    notes = [f'no 0x{index:04X}:{subindex:02X} ({name}): {consequence}'
+             for (index, subindex), (name, consequence) in OPTIONAL_OBJECTS.items()
+             if not sdo.has(index, subindex)]
+    units_stated, unit_notes = _check_units(sdo, description)
+    notes += unit_notes
+    _map_pdo(sdo, RPDO1_COMMUNICATION, RPDO1_MAPPING, 0x200 + node_id, RPDO_MAP,
+             TRANSMISSION_EVENT_DRIVEN, None)
+    if description.tpdo_timing == 'sync':
+        _map_pdo(sdo, TPDO1_COMMUNICATION, TPDO1_MAPPING, 0x180 + node_id, TPDO_MAP,
+                 TRANSMISSION_SYNC, None)
+    else:
+        _map_pdo(sdo, TPDO1_COMMUNICATION, TPDO1_MAPPING, 0x180 + node_id, TPDO_MAP,
+                 TRANSMISSION_EVENT_DRIVEN, int(round(description.tpdo_period_s * 1000.0)))
+    _protect(sdo, description)
+    if sdo.has(ABORT_CONNECTION_OPTION, 0):
+        sdo.write(ABORT_CONNECTION_OPTION, 0, ABORT_CONNECTION_QUICK_STOP)
+    units = description.units
     for index, value in ((QUICK_STOP_DECELERATION, description.quick_stop_decel_m_s2),
                          (PROFILE_ACCELERATION, description.profile_accel_m_s2),
                          (PROFILE_DECELERATION, description.profile_decel_m_s2)):
-        sdo.write(index, 0, int(round(value * counts)))
-    low_m = sdo.read(SOFTWARE_POSITION_LIMIT, 1) / counts
-    high_m = sdo.read(SOFTWARE_POSITION_LIMIT, 2) / counts
-    stroke = description.stroke_limit_m
-    if not (low_m <= -stroke and stroke <= high_m):
+        if sdo.has(index, 0):
+            sdo.write(index, 0, units.acceleration(value))
+    limits_m = _software_limits(sdo, description)
+    return Commissioned(device_type, vendor_id, product_code, limits_m,
+                        description.protection, description.tpdo_timing, units_stated,
+                        tuple(notes))
+
+
+def _check_units(sdo: _Sdo, description: DriveDescription) -> Tuple[Dict[str, str], List[str]]:
+    """Read what the drive states of its units and compare it with the rig file's."""
+    stated = {index: sdo.read(index) for _, index, _, _ in drive_units.QUANTITIES
+              if sdo.has(index, 0)}
+    resolution = drive_units.POSITION_ENCODER_RESOLUTION
+    increments_per_rev = None
+    if sdo.has(resolution, 1) and sdo.has(resolution, 2):
+        increments, revolutions = sdo.read(resolution, 1), sdo.read(resolution, 2)
+        if increments and revolutions:
+            increments_per_rev = increments / revolutions
+    try:
+        notes = drive_units.check_stated(description.units, stated, increments_per_rev,
+                                         description.node_id)
+    except DriveUnitsError as error:
+        raise CommissioningError(str(error)) from None
+    return ({quantity: drive_units.unit_text(stated[index])
+             for quantity, index, _, _ in drive_units.QUANTITIES if index in stated}, notes)
+
+
+def _protect(sdo: _Sdo, description: DriveDescription) -> None:
+    """Set the drive to stop when the master falls silent, by the protection chosen."""
+    heartbeat_ms = int(round(description.heartbeat_period_s * 1000.0))
+    if description.protection == 'guarding':
+        guard_ms, factor = description.guarding
+        sdo.write(PRODUCER_HEARTBEAT, 0, 0)  # CiA 301: guarding only without a heartbeat
+        sdo.write(GUARD_TIME, 0, guard_ms)
+        sdo.write(LIFE_TIME_FACTOR, 0, factor)
+        return
+    sdo.write(PRODUCER_HEARTBEAT, 0, heartbeat_ms)
+    if description.protection == 'heartbeat':
+        sdo.write(CONSUMER_HEARTBEAT, 1, (description.master_node_id << 16)
+                  | int(round(description.consumer_heartbeat_s * 1000.0)))
+
+
+def _software_limits(sdo: _Sdo, description: DriveDescription) -> Tuple[float, float]:
+    """Write 0x607D from the stroke where the drive lets it; check it contains the stroke."""
+    if not (sdo.has(SOFTWARE_POSITION_LIMIT, 1) and sdo.has(SOFTWARE_POSITION_LIMIT, 2)):
+        return -math.inf, math.inf
+    units, stroke = description.units, description.stroke_limit_m
+    for subindex, value in ((1, units.position(-stroke)), (2, units.position(stroke))):
+        if sdo.writable(SOFTWARE_POSITION_LIMIT, subindex):
+            sdo.write(SOFTWARE_POSITION_LIMIT, subindex, value, read_only_ok=True)
+    low_m = sdo.read(SOFTWARE_POSITION_LIMIT, 1) / units.position_per_m
+    high_m = sdo.read(SOFTWARE_POSITION_LIMIT, 2) / units.position_per_m
+    tolerance_m = 1.0 / units.position_per_m
+    if not (low_m <= -stroke + tolerance_m and stroke - tolerance_m <= high_m):
         raise CommissioningError(
-            f'drive {node_id}: software position limits 0x607D ({low_m:.6f} .. '
-            f'{high_m:.6f} m) do not contain the stroke +-{stroke} m (design.stroke_limit_m)')
-    return Commissioned(device_type, vendor_id, product_code, (low_m, high_m))
+            f'drive {description.node_id}: software position limits 0x607D ({low_m:.6f} .. '
+            f'{high_m:.6f} m) are read-only and do not contain the stroke +-{stroke} m '
+            '(design.stroke_limit_m)')
+    return low_m, high_m
 
 
 def _map_pdo(sdo: _Sdo, communication: int, mapping: int, cob_id: int,
-             entries: Tuple[Tuple[int, int, int], ...], event_timer_ms: Optional[int]) -> None:
+             entries: Tuple[Tuple[int, int, int], ...], transmission_type: int,
+             event_timer_ms: Optional[int]) -> None:
     """Map one PDO in CiA 301 order (disable, map, count, enable), then read it back."""
     sdo.write(communication, 1, COB_ID_INVALID | cob_id)
     sdo.write(mapping, 0, 0)
@@ -323,13 +493,18 @@ def _map_pdo(sdo: _Sdo, communication: int, mapping: int, cob_id: int,
     for position, word in enumerate(words, 1):
         sdo.write(mapping, position, word)
     sdo.write(mapping, 0, len(words))
-    sdo.write(communication, 2, TRANSMISSION_EVENT_DRIVEN)
+    sdo.write(communication, PDO_TRANSMISSION_TYPE, transmission_type)
     if event_timer_ms is not None:
-        sdo.write(communication, 5, event_timer_ms)
+        sdo.write(communication, PDO_EVENT_TIMER, event_timer_ms)
     sdo.write(communication, 1, cob_id)
     found = [sdo.read(mapping, position) for position in range(1, len(words) + 1)]
     count = sdo.read(mapping, 0)
     if count != len(words) or found != words or sdo.read(communication, 1) != cob_id:
         raise CommissioningError(
-            f'drive {sdo._node.id}: 0x{mapping:04X} did not take the mapping: read back '
+            f'drive {sdo.node_id}: 0x{mapping:04X} did not take the mapping: read back '
             f'{count} entries {[hex(w) for w in found]}, wrote {[hex(w) for w in words]}')
+    timing = sdo.read(communication, PDO_TRANSMISSION_TYPE)
+    if timing != transmission_type:
+        raise CommissioningError(
+            f'drive {sdo.node_id}: 0x{communication:04X}:02 (transmission type) reads '
+            f'{timing} after writing {transmission_type}')

@@ -12,8 +12,15 @@ is reset on a rising edge of controlword bit 7 on the way). After that each loop
 calls :meth:`~DriveClient.poll` (drain received frames, never blocks),
 :meth:`~DriveClient.check_health` and :meth:`~DriveClient.command_velocity` (one RPDO).
 
-Units: position in m and velocity in m/s at this API, drive counts and counts/s on the
-wire (``counts_per_m``); times in s of the injected monotonic clock.
+With ``sync=True`` every RPDO is followed by a SYNC frame: the drive's TPDO1 (transmission
+type 1) then answers each command with the position sampled at that SYNC, and
+:meth:`~DriveClient.sync` keeps the positions coming while nothing is commanded. The
+master's own heartbeat or guard requests are not sent here but by
+:class:`~flexure_ctrl.core.master_beat.MasterBeat`, from a thread of their own.
+
+Units: position in m and velocity in m/s at this API, the drive's units on the wire
+(:class:`~flexure_ctrl.core.drive_units.DriveUnits`); times in s of the injected
+monotonic clock.
 """
 
 import collections
@@ -23,12 +30,12 @@ from typing import Callable, Deque, Optional, Tuple
 import can
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import Controlword, DriveState, NmtCommand, NmtState
+from flexure_ctrl.core.drive_units import DriveUnits
 from flexure_ctrl.core.errors import FlexureCtrlError
 
-_INT32_MIN = -(1 << 31)
-_INT32_MAX = (1 << 31) - 1
 # How long start() waits for the TPDO answering one state-machine RPDO before it sends
-# the next controlword anyway (s); the drive answers each RPDO at once.
+# the next controlword anyway (s); the drive answers the SYNC after it at once, or sends
+# on its event timer (10 ms by default).
 _STATE_STEP_WAIT_S = 0.02
 # Re-send NMT start at most this often (s) while the heartbeat says not operational
 # (the drive may have booted after the first one).
@@ -83,18 +90,17 @@ class DriveClient:
     the bus down. Use as a context manager to :meth:`shutdown` on exit.
     """
 
-    def __init__(self, bus: can.BusABC, node_id: int, counts_per_m: float = 1e6,
+    def __init__(self, bus: can.BusABC, node_id: int, units: DriveUnits = DriveUnits(),
                  sdo_timeout_s: float = 0.5, heartbeat_timeout_s: float = 0.5,
                  clock: Callable[[], float] = time.monotonic, owns_bus: bool = False,
                  emergency_history: int = 16, tpdo_timeout_s: Optional[float] = None,
-                 master_node_id: Optional[int] = None,
-                 master_heartbeat_period_s: float = 0.1) -> None:
+                 sync: bool = False) -> None:
         """
         Bind a client to a bus and a node id; nothing is sent until :meth:`start`.
 
         :param bus: an open python-can bus.
         :param node_id: CANopen node id of the drive, 1 to 127.
-        :param counts_per_m: drive position counts per metre of extension (> 0).
+        :param units: scales between SI and the drive's units.
         :param sdo_timeout_s: how long to wait for an SDO answer (s).
         :param heartbeat_timeout_s: largest gap between heartbeats before
             :meth:`check_health` raises (s).
@@ -105,29 +111,22 @@ class DriveClient:
             default 1.5 times the heartbeat timeout, so that a drive gone silent is
             reported as a lost heartbeat, and this catches a drive that still beats but
             no longer sends its position.
-        :param master_node_id: node id of this master's own heartbeat, which
-            :meth:`poll` sends every ``master_heartbeat_period_s`` (s) and the drive
-            watches (its 0x1016); None: no heartbeat.
-        :raises ValueError: a node id or scale out of range.
+        :param sync: send a SYNC after every RPDO (the drive's TPDO1 is type 1).
+        :raises ValueError: a node id out of range.
         """
         if not 1 <= node_id <= 127:
             raise ValueError(f'node_id must lie in 1..127, got {node_id}')
-        if not counts_per_m > 0.0:
-            raise ValueError(f'counts_per_m must be > 0, got {counts_per_m}')
         self.bus = bus
         self.node_id = node_id
-        self.counts_per_m = float(counts_per_m)
+        self.units = units
         self.sdo_timeout_s = sdo_timeout_s
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.tpdo_timeout_s = (1.5 * heartbeat_timeout_s if tpdo_timeout_s is None
                                else tpdo_timeout_s)
         self._clock = clock
         self._owns_bus = owns_bus
-        self._master_heartbeat = None if master_node_id is None else can.Message(
-            arbitration_id=cia402.HEARTBEAT_BASE + master_node_id, is_extended_id=False,
-            data=cia402.encode_heartbeat(NmtState.OPERATIONAL))
-        self._master_heartbeat_period_s = master_heartbeat_period_s
-        self._next_master_heartbeat_s = 0.0
+        self._sync = can.Message(arbitration_id=cia402.SYNC_COB_ID, is_extended_id=False,
+                                 data=b'') if sync else None
         # Why the latest TPDO could not be read (e.g. the drive maps other objects).
         self.tpdo_problem = ''
         self._tpdo_id = cia402.TPDO1_BASE + node_id
@@ -166,7 +165,7 @@ class DriveClient:
     @property
     def position_m(self) -> float:
         """Potentiometer extension (m) from the latest TPDO; 0.0 before the first."""
-        return self.position_counts / self.counts_per_m
+        return self.position_counts / self.units.position_per_m
 
     @property
     def enabled(self) -> bool:
@@ -220,8 +219,7 @@ class DriveClient:
                 return
 
     def poll(self) -> None:
-        """Process every frame already received, and send the master heartbeat if due."""
-        self._beat()
+        """Process every frame already received."""
         recv = self.bus.recv
         dispatch = self._dispatch
         message = recv(0.0)
@@ -229,18 +227,9 @@ class DriveClient:
             dispatch(message)
             message = recv(0.0)
 
-    def _beat(self) -> None:
-        """Send the master heartbeat if it is due."""
-        if self._master_heartbeat is not None:
-            now_s = self._clock()
-            if now_s >= self._next_master_heartbeat_s:
-                self.bus.send(self._master_heartbeat)
-                self._next_master_heartbeat_s = now_s + self._master_heartbeat_period_s
-
     def _wait(self, until_s: float, done: Callable[[], bool]) -> bool:
         """Receive frames until ``done()`` or the clock passes ``until_s``."""
         while not done():
-            self._beat()
             remaining = until_s - self._clock()
             if remaining <= 0.0:
                 return done()
@@ -254,13 +243,20 @@ class DriveClient:
     def _send(self, cob_id: int, data: bytes) -> None:
         self.bus.send(can.Message(arbitration_id=cob_id, is_extended_id=False, data=data))
 
-    def _send_rpdo(self, controlword: int, velocity_counts_s: int) -> None:
-        self._rpdo.data = cia402.encode_pdo(controlword, velocity_counts_s)
+    def _send_rpdo(self, controlword: int, velocity: int) -> None:
+        """Send RPDO1 (controlword, velocity in drive units), then a SYNC in sync mode."""
+        self._rpdo.data = cia402.encode_pdo(controlword, velocity)
         self.bus.send(self._rpdo)
+        if self._sync is not None:
+            self.bus.send(self._sync)
         self.controlword = controlword
-        self._disable_sent = (controlword == Controlword.DISABLE_VOLTAGE
-                              and velocity_counts_s == 0)
+        self._disable_sent = controlword == Controlword.DISABLE_VOLTAGE and velocity == 0
         self.last_command_s = self._clock()
+
+    def sync(self) -> None:
+        """Send a SYNC in sync mode (the drive answers with its TPDO1); else nothing."""
+        if self._sync is not None:
+            self.bus.send(self._sync)
 
     def send_nmt(self, command: NmtCommand) -> None:
         """Send one NMT command to this drive's node id."""
@@ -337,9 +333,10 @@ class DriveClient:
         self.send_nmt(NmtCommand.START)
         nmt_sent_s = self._clock()
         self._set_mode_of_operation(deadline_s)
-        # An operational drive sends TPDOs on its event timer: start from the state it
-        # reports, or else probe with Disable Voltage (no edge, no enable).
+        # An operational drive sends TPDOs on SYNC or on its event timer: start from the
+        # state it reports, or else probe with Disable Voltage (no edge, no enable).
         seen_tpdos = self.tpdo_count
+        self.sync()
         fresh = self._wait(min(deadline_s, self._clock() + 2 * _STATE_STEP_WAIT_S),
                            lambda: self.tpdo_count > seen_tpdos)
         previous_controlword = int(Controlword.DISABLE_VOLTAGE)
@@ -394,18 +391,14 @@ class DriveClient:
         """
         Send one RPDO: Enable Operation and the target velocity.
 
-        :param velocity_m_s: target velocity (m/s), rounded to whole counts/s.
+        :param velocity_m_s: target velocity (m/s), rounded to whole drive units.
         :raises DriveError: the client is not enabled (never started, or stopped).
         """
         if not self._enabled:
             raise DriveError(f'drive {self.node_id}: not enabled; call start() first')
-        counts = round(velocity_m_s * self.counts_per_m)
-        if counts > _INT32_MAX:
-            counts = _INT32_MAX
-        elif counts < _INT32_MIN:
-            counts = _INT32_MIN
-        self._send_rpdo(Controlword.ENABLE_OPERATION, counts)
-        self.commanded_velocity_m_s = counts / self.counts_per_m
+        velocity = self.units.velocity(velocity_m_s)
+        self._send_rpdo(Controlword.ENABLE_OPERATION, velocity)
+        self.commanded_velocity_m_s = velocity / self.units.velocity_per_m_s
 
     def check_health(self, now_s: Optional[float] = None) -> None:
         """

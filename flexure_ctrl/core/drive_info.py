@@ -3,8 +3,9 @@ What a drive says about itself, read over SDO without enabling anything.
 
 :func:`read_drive_info` gives the lines ``flexure-ctrl drive info`` prints for the
 technician at the rig: identity, device name, NMT and CiA 402 state, the active PDO
-mapping, the error register and the pre-defined error field (0x1003). It reads only:
-no NMT command, no controlword.
+mapping and timing, how the drive watches its master, the units it states, the error
+register and the pre-defined error field (0x1003). It reads only: no NMT command, no
+controlword.
 """
 
 from typing import List, Tuple
@@ -16,6 +17,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.commissioning import abort_meaning, CommissioningTimeoutError
 from flexure_ctrl.core.commissioning import od_entry, sdo_session
+from flexure_ctrl.core.drive_units import FACTOR_GROUP, QUANTITIES, unit_text
 from flexure_ctrl.core.errors import one_line
 
 NMT_NAMES = {state.value: state.name.replace('_', '-') for state in cia402.NmtState}
@@ -97,6 +99,9 @@ def _read(node, dictionary, heartbeat_wait_s: float) -> List[Tuple[str, str]]:
         state = 'disabled' if cob & (1 << 31) else f'COB-ID 0x{cob & 0x7FF:03X}'
         lines.append((f'{name} (0x{communication:04X}/0x{mapping:04X})',
                       f'{state}: ' + (', '.join(entries) or 'nothing mapped')))
+    lines += _timing_lines(value)
+    lines += _protection_lines(value)
+    lines += _unit_lines(value, dictionary)
     register, problem = value(0x1001)
     lines.append(('error register (0x1001)', show(register, problem, 2)))
     errors, problem = value(0x1003, 0)
@@ -106,4 +111,78 @@ def _read(node, dictionary, heartbeat_wait_s: float) -> List[Tuple[str, str]]:
         codes = [value(0x1003, i)[0] for i in range(1, errors + 1)]
         lines.append(('error history (0x1003)', ', '.join(
             f'0x{code:08X}' if code is not None else '?' for code in codes) or 'empty'))
+    return lines
+
+
+def _timing_lines(value) -> List[Tuple[str, str]]:
+    """When the PDOs go: transmission type, inhibit time, event timer."""
+    lines = []
+    for name, communication, _ in PDOS:
+        kind, problem = value(communication, 2)
+        if problem:
+            lines.append((f'{name} timing (0x{communication:04X}:02)', problem))
+            continue
+        if 1 <= kind <= 240:
+            text = 'on every SYNC' if kind == 1 else f'on every {kind}th SYNC'
+        elif kind == 0:
+            text = 'on SYNC, acyclic'
+        elif kind >= 254:
+            text = 'on event' if communication == 0x1800 else 'applied at once'
+        else:
+            text = 'reserved'
+        text = f'type {kind}: {text}'
+        if communication == 0x1800 and kind >= 254:
+            inhibit, inhibit_problem = value(communication, 3)
+            timer, timer_problem = value(communication, 5)
+            text += ('; event timer ' + (timer_problem or f'{timer} ms')
+                     + '; inhibit time ' + (inhibit_problem or f'{inhibit * 0.1:g} ms'))
+        lines.append((f'{name} timing (0x{communication:04X}:02)', text))
+    return lines
+
+
+def _protection_lines(value) -> List[Tuple[str, str]]:
+    """How the drive watches its master: consumer heartbeat, node guarding, or not at all."""
+    producer, problem = value(0x1017)
+    lines = [("drive's heartbeat (0x1017)", problem or (f'every {producer} ms' if producer
+                                                         else 'off'))]
+    consumer, consumer_problem = value(0x1016, 1)
+    guard, guard_problem = value(0x100C)
+    factor, factor_problem = value(0x100D)
+    watching = []
+    if not consumer_problem and consumer & 0xFFFF:
+        watching.append(f'consumer heartbeat of node {(consumer >> 16) & 0x7F} within '
+                        f'{consumer & 0xFFFF} ms (0x1016:01)')
+    if not guard_problem and not factor_problem and guard and factor:
+        watching.append(f'node guarding, guard time {guard} ms x life time factor {factor} '
+                        f'= {guard * factor} ms (0x100C, 0x100D)')
+    abort, abort_problem = value(0x6007)
+    reaction = {0: 'no action', 1: 'fault', 2: 'disable voltage', 3: 'quick stop'}
+    lines.append(('protection against a dead master', '; '.join(watching) or (
+        'none: the drive keeps moving if its master dies' + (
+            '' if consumer_problem and guard_problem else ' (not set: commission it)'))))
+    lines.append(('on a lost master (0x6007)', abort_problem or reaction.get(
+        abort, f'option {abort}')))
+    return lines
+
+
+def _unit_lines(value, dictionary) -> List[Tuple[str, str]]:
+    """The units the drive states (0x60A8-0x60AA) and its factor group, where present."""
+    lines = []
+    for quantity, index, _, _ in QUANTITIES:
+        code, problem = value(index)
+        lines.append((f'{quantity} unit (0x{index:04X})', problem or (
+            f'{unit_text(code)} (0x{code:08X})')))
+    for index, name in FACTOR_GROUP.items():
+        if index not in dictionary:
+            continue
+        entry = dictionary[index]
+        if isinstance(entry, objectdictionary.ODVariable):
+            number, problem = value(index)
+            lines.append((f'{name.lower()} (0x{index:04X})', problem or str(number)))
+            continue
+        parts = []
+        for subindex in sorted(s for s in entry.subindices if s):
+            number, problem = value(index, subindex)
+            parts.append(problem or str(number))
+        lines.append((f'{name.lower()} (0x{index:04X})', ' / '.join(parts)))
     return lines

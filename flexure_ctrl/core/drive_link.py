@@ -7,8 +7,11 @@ enables it with its client); a bus that failed is replaced by a new one on
 the next try, a drive that did not answer is tried again on the same bus. A drive that
 answers but is refused (wrong identity, an SDO abort, limits) ends the start at once.
 After a lost bus, :meth:`DriveLink.reopen` gives a new bus and a newly commissioned
-drive. Time is passed in (integer ns of a monotonic clock). Not thread-safe: the caller
-orders its calls.
+drive. From the bus's opening until :meth:`DriveLink.close`, the master's heartbeat (or
+its node-guarding requests) goes out from a thread of its own
+(:class:`~flexure_ctrl.core.master_beat.MasterBeat`), whatever the caller does between
+its calls. Time is passed in (integer ns of a monotonic clock). Not thread-safe: the
+caller orders its calls.
 """
 
 import socket
@@ -17,9 +20,11 @@ from typing import Optional
 import can
 from canopen import objectdictionary
 from flexure_ctrl.core.commissioning import commission, CommissioningError, \
-    CommissioningTimeoutError, DriveDescription
+    CommissioningTimeoutError, CONSUMER_HEARTBEAT, DriveDescription, LIFE_TIME_FACTOR
 from flexure_ctrl.core.drive_client import DriveClient, DriveError
 from flexure_ctrl.core.errors import FlexureCtrlError, one_line, quiet_library_loggers
+from flexure_ctrl.core.master_beat import guard_request, heartbeat_frame, MasterBeat, \
+    SendLock
 
 _NS_PER_S = 1_000_000_000
 INTERFACES_WITH_HOST = ('socketcand',)
@@ -61,9 +66,10 @@ class DriveLink:
     :param channel: CAN channel.
     :param host: socketcand server host.
     :param port: socketcand server port.
-    :param description: the drive (node id, counts per m, safety settings).
+    :param description: the drive (node id, units, safety settings).
     :param dictionary: its EDS, as :func:`~flexure_ctrl.core.commissioning.load_eds`
         read it.
+    :raises CommissioningError: the EDS lacks the protection the description asks for.
     :param heartbeat_timeout_s: largest gap between drive heartbeats (s).
     :param connect_timeout_s: how long (s) to keep trying at start-up.
     :param retry_s: time (s) between two tries.
@@ -74,7 +80,8 @@ class DriveLink:
                  dictionary: objectdictionary.ObjectDictionary, heartbeat_timeout_s: float,
                  connect_timeout_s: float, retry_s: float = 0.2) -> None:
         self._bus_arguments = (interface, channel, host, port)
-        self.description = description
+        self.description = description.resolved(dictionary)
+        self.beat: Optional[MasterBeat] = None
         self._dictionary = dictionary
         self._heartbeat_timeout_s = heartbeat_timeout_s
         self.commissioned = None
@@ -104,7 +111,7 @@ class DriveLink:
         remaining_s = (self._deadline_ns - now_ns) / _NS_PER_S
         try:
             if self.bus is None:
-                self.bus = open_bus(*self._bus_arguments)
+                self._open()
             if self.client is None:
                 self.client = self._commissioned_client()
         except CommissioningError as error:
@@ -139,11 +146,22 @@ class DriveLink:
         """Commission the drive on the current bus; a client for it, not yet started."""
         description = self.description
         self.commissioned = commission(self.bus, description, self._dictionary)
-        return DriveClient(self.bus, description.node_id,
-                           counts_per_m=description.counts_per_m,
+        return DriveClient(self.bus, description.node_id, units=description.units,
                            heartbeat_timeout_s=self._heartbeat_timeout_s,
-                           master_node_id=description.master_node_id,
-                           master_heartbeat_period_s=description.master_heartbeat_period_s)
+                           sync=description.tpdo_timing == 'sync')
+
+    def _open(self) -> None:
+        """Open the bus and start the master's beat on it (before the drive watches it)."""
+        self.bus = SendLock(open_bus(*self._bus_arguments))
+        description = self.description
+        if description.protection == 'heartbeat':
+            frame = heartbeat_frame(description.master_node_id)
+        elif description.protection == 'guarding':
+            frame = guard_request(description.node_id)
+        else:
+            return
+        self.beat = MasterBeat(self.bus, frame, description.master_heartbeat_period_s,
+                               name=f'drive-{description.node_id}-beat').start()
 
     def reopen(self) -> DriveClient:
         """
@@ -157,7 +175,7 @@ class DriveLink:
         if client is not None:
             client.shutdown()
         self._close_bus()
-        self.bus = open_bus(*self._bus_arguments)
+        self._open()
         self.client = self._commissioned_client()
         return self.client
 
@@ -176,10 +194,25 @@ class DriveLink:
             return client.disable(confirm_timeout_s=confirm_timeout_s)
         finally:
             if client is not None:
+                self._release(client)
                 client.shutdown()
             self._close_bus()
 
+    def _release(self, client: DriveClient) -> None:
+        """Tell the drive to stop watching the master, which is about to fall silent."""
+        protection = self.description.protection
+        try:
+            if protection == 'heartbeat':
+                client.sdo_write(CONSUMER_HEARTBEAT, 1, 0, 4)
+            elif protection == 'guarding':
+                client.sdo_write(LIFE_TIME_FACTOR, 0, 0, 1)
+        except (DriveError, can.CanError, OSError):
+            pass  # the drive then reports the silence (EMCY 0x8130), disabled already
+
     def _close_bus(self) -> None:
+        beat, self.beat = self.beat, None
+        if beat is not None:
+            beat.shutdown()
         bus, self.bus = self.bus, None
         if bus is not None:
             try:

@@ -61,7 +61,7 @@ from flexure_ctrl.core.run import LoopStatus, PlanError, RunMessage
 from flexure_ctrl.interface import ACTUATOR_NAMES
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.actuator_support import declare_loop_parameters, diagnostic_values
-from flexure_ctrl.nodes.actuator_support import level_of, LoopThread, status_of
+from flexure_ctrl.nodes.actuator_support import level_of, link_values, LoopThread, status_of
 from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message, stamp_ns_of
 from flexure_ctrl.nodes.run_messages import word_message
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -219,7 +219,14 @@ class ActuatorLoop(LifecycleNode):
                 f'drive node {self.p.node_id} commissioned: vendor 0x{found.vendor_id:08X}, '
                 f'product 0x{found.product_code:08X}, software limits '
                 f'{found.position_limits_m[0] * 1e3:+.1f} .. '
-                f'{found.position_limits_m[1] * 1e3:+.1f} mm')))
+                f'{found.position_limits_m[1] * 1e3:+.1f} mm, protection '
+                f'{found.protection}, TPDO on {found.tpdo_timing}')))
+            if found.protection == 'none':
+                self.drive.events.append((logging.WARNING, (
+                    f'drive node {self.p.node_id} runs unprotected (drive.protection: none): '
+                    'it keeps moving if this PC dies')))
+            for note in found.notes:
+                self.drive.events.append((logging.INFO, f'drive node {self.p.node_id}: {note}'))
             self._report()
         return TransitionCallbackReturn.SUCCESS
 
@@ -454,12 +461,16 @@ class ActuatorLoop(LifecycleNode):
             status = status_of(self.mode, self.problem, self.controller)
             values = diagnostic_values(self.mode, self.link.client, self.controller,
                                        self.thread, self.position_stale)
+            values += link_values(self.link)
         level = level_of(self.mode, status)
         message = f'{self.mode.value}: {status.problem}' if status.problem else \
             f'{self.mode.value}, following {status.following.value}'
         pairs = status.to_pairs()
         self.status_publisher.publish(word_message(self._status_name, pairs, level, message,
                                                    self._hardware_id))
+        if self.link.description.protection == 'none' and level == DiagnosticStatus.OK:
+            level, message = DiagnosticStatus.WARN, message + (
+                '; the drive runs unprotected (drive.protection: none)')
         array = DiagnosticArray(status=[word_message(self._status_name, pairs + values, level,
                                                      message, self._hardware_id)])
         array.header.stamp = self.get_clock().now().to_msg()

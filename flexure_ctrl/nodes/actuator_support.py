@@ -15,9 +15,11 @@ from typing import Callable, List, Optional, Tuple, Type
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from flexure_ctrl.core.actuator_drive import Mode
-from flexure_ctrl.core.commissioning import DriveDescription
+from flexure_ctrl.core.commissioning import CommissioningError, DriveDescription
 from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_client import DriveClient
+from flexure_ctrl.core.drive_link import DriveLink
+from flexure_ctrl.core.drive_units import DriveUnits, DriveUnitsError
 from flexure_ctrl.core.ploop import ActuatorController
 from flexure_ctrl.core.run import Following, LoopStatus
 from flexure_ctrl.interface import ACTUATOR_NAMES
@@ -38,8 +40,6 @@ _BOOL = ParameterType.PARAMETER_BOOL
 _RANGED = (
     ('can.port', 29536, 'socketcand server TCP port (socketcand only)', 1, 65535, False),
     ('node_id', 1, 'CANopen node id of the drive', 1, 127, False),
-    ('counts_per_m', 1e6, 'drive position counts per m (velocity: counts/s per m/s)',
-     1.0, 1e9, False),
     ('rate_hz', 500, 'loop rate (Hz)', 10, 2000, False),
     ('gain_per_s', 20.0, 'proportional gain (1/s): m/s of command per m of error; may '
      'change live', 0.0, 200.0, True),
@@ -80,8 +80,14 @@ _RANGED = (
      'is silent this long (s; 0x1016, 0x6007 = 3)', 0.01, 65.0, False),
     ('drive.heartbeat_period_s', 0.1, "the drive's own heartbeat period (s; 0x1017)", 0.01,
      10.0, False),
-    ('drive.tpdo_period_s', 0.01, 'event timer (s) of the position TPDO (0x1800:05)', 0.001,
-     1.0, False),
+    ('drive.tpdo_period_s', 0.01, 'event timer (s) of the position TPDO (0x1800:05), with '
+     'drive.tpdo_timing event_timer', 0.001, 1.0, False),
+    ('drive.position_units_per_m', 1e6, "the drive's position units (0x6064, 0x607D) per m",
+     1e-3, 1e12, False),
+    ('drive.velocity_units_per_m_s', 1e6, "the drive's velocity units (0x60FF) per m/s",
+     1e-3, 1e12, False),
+    ('drive.acceleration_units_per_m_s2', 1e6, "the drive's acceleration units (0x6083-0x6085)"
+     ' per m/s^2', 1e-3, 1e12, False),
     ('drive.quick_stop_decel_m_s2', 0.5, "the drive's quick-stop deceleration (m/s^2; "
      '0x6085)', 1e-3, 100.0, False),
     ('drive.profile_accel_m_s2', 0.2, "the drive's profile acceleration (m/s^2; 0x6083)",
@@ -98,6 +104,17 @@ _TYPED = (
     ('drive.eds_file', '', _STRING, "the drive's EDS or DCF (required); a relative path "
      'not found from the working folder is looked up in the config folders, e.g. '
      'drives/lead_screw_sim.eds'),
+    ('drive.position_unit', 'inc', _STRING, "the position unit the drive must state in "
+     "0x60A8 (as flexure-ctrl drive info prints it, e.g. inc); '' for any"),
+    ('drive.velocity_unit', 'inc/s', _STRING, 'the velocity unit the drive must state in '
+     "0x60A9, e.g. inc/s or rev/min (rpm); '' for any"),
+    ('drive.acceleration_unit', 'inc/s/s', _STRING, 'the acceleration unit the drive must '
+     "state in 0x60AA, e.g. inc/s/s or rev/min/s (rpm/s); '' for any"),
+    ('drive.protection', 'auto', _STRING, 'how the drive stops when this PC dies: heartbeat '
+     '(0x1016), guarding (0x100C/0x100D, the loop sends the guard requests), auto (the first '
+     'of these the EDS has) or none (runs unprotected, reported as a WARN)'),
+    ('drive.tpdo_timing', 'sync', _STRING, 'when the drive sends its position: sync (TPDO1 '
+     'type 1, on the SYNC the loop sends each cycle) or event_timer (drive.tpdo_period_s)'),
     ('compensate_reading_age', True, _BOOL,
      'compare each potentiometer reading with the setpoint of the time its TPDO was received '
      '(the CAN frame timestamp, system clock) instead of the setpoint of now'),
@@ -114,7 +131,6 @@ class LoopParameters:
     can_host: str
     can_port: int
     node_id: int
-    counts_per_m: float
     rate_hz: int
     gain_per_s: float
     velocity_feedforward: float
@@ -142,12 +158,21 @@ class LoopParameters:
     drive_quick_stop_decel_m_s2: float
     drive_profile_accel_m_s2: float
     drive_profile_decel_m_s2: float
+    drive_position_units_per_m: float
+    drive_velocity_units_per_m_s: float
+    drive_acceleration_units_per_m_s2: float
+    drive_position_unit: str
+    drive_velocity_unit: str
+    drive_acceleration_unit: str
+    drive_protection: str
+    drive_tpdo_timing: str
 
     def drive_description(self, error: Type[Exception]) -> DriveDescription:
         """
         Return the drive as commissioning needs it.
 
-        :raises error: no EDS given, or one that cannot be found.
+        :raises error: no EDS given, or one that cannot be found; units or a choice
+            out of range.
         """
         if not self.drive_eds_file:
             raise error("parameter drive.eds_file is not set: give the drive's EDS in the "
@@ -158,14 +183,22 @@ class LoopParameters:
                 path = find_config_file(path)
             except FileNotFoundError as missing:
                 raise error(f'parameter drive.eds_file: {missing}') from None
-        return DriveDescription(
-            str(path), self.node_id, self.counts_per_m, self.stroke_limit_m,
-            self.drive_master_node_id or 127 - self.node_id,
-            self.drive_master_heartbeat_period_s, self.drive_consumer_heartbeat_s,
-            self.drive_heartbeat_period_s, self.drive_tpdo_period_s,
-            self.drive_quick_stop_decel_m_s2, self.drive_profile_accel_m_s2,
-            self.drive_profile_decel_m_s2, self.drive_vendor_id or None,
-            self.drive_product_code or None)
+        try:
+            units = DriveUnits(
+                self.drive_position_units_per_m, self.drive_velocity_units_per_m_s,
+                self.drive_acceleration_units_per_m_s2, self.drive_position_unit,
+                self.drive_velocity_unit, self.drive_acceleration_unit)
+            return DriveDescription(
+                str(path), self.node_id, units, self.stroke_limit_m,
+                self.drive_master_node_id or 127 - self.node_id,
+                self.drive_master_heartbeat_period_s, self.drive_consumer_heartbeat_s,
+                self.drive_heartbeat_period_s, self.drive_tpdo_period_s,
+                self.drive_quick_stop_decel_m_s2, self.drive_profile_accel_m_s2,
+                self.drive_profile_decel_m_s2, self.drive_vendor_id or None,
+                self.drive_product_code or None, self.drive_protection,
+                self.drive_tpdo_timing)
+        except (DriveUnitsError, CommissioningError) as invalid:
+            raise error(f'parameter {invalid}') from None
 
 
 def declare_loop_parameters(node: Node, error: Type[Exception]) -> LoopParameters:
@@ -371,4 +404,15 @@ def diagnostic_values(mode: Mode, client: Optional[DriveClient],
         ('setpoint clamps', str(controller.loop.clamp_count)),
         ('last emergency', f'0x{client.emergencies[-1][1].error_code:04X}'
          if client and client.emergencies else 'none'),
+    ]
+
+
+def link_values(link: DriveLink) -> List[Tuple[str, str]]:
+    """Key-value pairs for ``/diagnostics``: how the drive is spoken to and protected."""
+    description, beat = link.description, link.beat
+    return [
+        ('drive protection', description.protection),
+        ('drive TPDO timing', description.tpdo_timing),
+        ('drive units', description.units.describe()),
+        ('master beat', f'{beat.sent} sent, {beat.failures} failed' if beat else 'none'),
     ]

@@ -7,9 +7,12 @@ band, hard end stops, and the potentiometer that measures the rod (noise, quanti
 slow offset drift). :class:`SimulatedDrive` puts it behind the drive side of CiA 301 /
 CiA 402 as a vendor drive has it: an object dictionary built from its own EDS
 (``config/drives/lead_screw_sim.eds``) and served over SDO (:mod:`.drive_objects`),
-NMT, heartbeat producer and consumer, RPDO1/TPDO1 as mapped in that dictionary, EMCY and
-the pre-defined error field. Out of the box its PDOs carry only the controlword and the
-statusword: a master must commission it (:mod:`flexure_ctrl.core.commissioning`).
+NMT, heartbeat producer and consumer or node guarding, RPDO1/TPDO1 as mapped in that
+dictionary, timed by SYNC or by event as CiA 301 has it, EMCY and the pre-defined error
+field. Out of the box its PDOs carry only the controlword and the statusword: a master
+must commission it (:mod:`flexure_ctrl.core.commissioning`). :data:`VENDORS` names the
+drives it can be: its own, one in rpm after a maxon EPOS4, one protected by node
+guarding after a Technosoft iPOS, one whose TPDOs have no event timer.
 
 Time is explicit: the owner calls :meth:`SimulatedDrive.tick` with the current time and
 the step, so tests run it deterministically and the simulator runs it in real time.
@@ -25,6 +28,7 @@ from typing import Callable, Optional
 import can
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.design import find_config_file
+from flexure_ctrl.core.drive_units import DriveUnits
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.sim.drive_objects import DriveObjects, PDO_EVENT_TIMER, TPDO1_COMMUNICATION
 import numpy as np
@@ -37,6 +41,8 @@ ERROR_REGISTER_COMMUNICATION = 0x10
 
 # Objects the drive acts on, beyond those cia402 names (CiA 301 / CiA 402).
 PRE_DEFINED_ERROR_FIELD = 0x1003
+GUARD_TIME = 0x100C
+LIFE_TIME_FACTOR = 0x100D
 CONSUMER_HEARTBEAT_TIME = 0x1016
 IDENTITY = 0x1018
 ABORT_CONNECTION_OPTION = 0x6007
@@ -48,17 +54,46 @@ ABORT_NO_ACTION, ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 0, 1, 2,
 # EMCY codes (CiA 301).
 EMCY_HEARTBEAT = 0x8130
 EMCY_PDO_LENGTH = 0x8210
-SIMULATED_DRIVE_EDS = 'drives/lead_screw_sim.eds'
 _ERROR_FIELD_LENGTH = 8
-
-_INT32_MIN = -(1 << 31)
-_INT32_MAX = (1 << 31) - 1
 # Bound on frames handled per tick, so a flood cannot stall the physics.
 _MAX_FRAMES_PER_TICK = 1000
 
 
 class SimulationParameterError(FlexureCtrlError, ValueError):
     """A parameter of the simulated actuator or drive is out of its range."""
+
+
+@dataclass(frozen=True)
+class SimulatedVendor:
+    """
+    A drive the simulator can be: its EDS and its units.
+
+    :param eds_file: its EDS, looked up in the config folders.
+    :param units: what its position, velocity and acceleration numbers mean.
+    """
+
+    eds_file: str
+    units: DriveUnits
+
+
+# A 2 mm lead screw on a motor with an 8192-increment encoder, the velocity in rpm and the
+# acceleration in rpm/s of the motor, as a maxon EPOS4 has them.
+_LEAD_M = 0.002
+_INCREMENTS_PER_REV = 8192
+RPM_UNITS = DriveUnits(position_per_m=_INCREMENTS_PER_REV / _LEAD_M,
+                       velocity_per_m_s=60.0 / _LEAD_M, acceleration_per_m_s2=60.0 / _LEAD_M,
+                       position_unit='inc', velocity_unit='rev/min',
+                       acceleration_unit='rev/min/s')
+VENDORS = {
+    # The package's own: increments of 1 um, its TPDOs with an event timer.
+    'flexure_ctrl': SimulatedVendor('drives/lead_screw_sim.eds', DriveUnits()),
+    # As its own, but no TPDO event timer (0x1800:05): TPDO1 on SYNC or on change.
+    'sync_only': SimulatedVendor('drives/sim_sync_only.eds', DriveUnits()),
+    # rpm and rpm/s, no TPDO event timer, software limits 0/0 out of the box.
+    'rpm': SimulatedVendor('drives/sim_rpm.eds', RPM_UNITS),
+    # No consumer heartbeat: node guarding (0x100C, 0x100D); no 0x6084.
+    'guarding': SimulatedVendor('drives/sim_guarding.eds', DriveUnits()),
+}
 
 
 @dataclass
@@ -237,11 +272,16 @@ class SimulatedDrive:
     SWITCH ON DISABLED with no mode of operation. Its object dictionary comes from its
     EDS and is served over SDO. RPDO1 and TPDO1 carry what 0x1600 and 0x1A00 map (out of
     the box: controlword alone, statusword alone); an RPDO shorter than its mapping is
-    dropped with EMCY 0x8210. Each RPDO is answered at once with TPDO1, which is also
-    sent on its event timer (0x1800:05) while OPERATIONAL. Heartbeats (0x1017) carry the
-    NMT state. When the heartbeat of the node configured in 0x1016:01 stops for its
-    consumer time, the drive sends EMCY 0x8130 and, in OPERATION ENABLED, acts on 0x6007
-    (1 fault, 2 disable voltage, 3 quick stop at 0x6085). Missing RPDOs for
+    dropped with EMCY 0x8210, and one is applied when it arrives. TPDO1 goes out while
+    OPERATIONAL as its transmission type (0x1800:02) says: on every n-th SYNC (1-240),
+    or (254/255) on its event timer (0x1800:05) where it has one and whenever its
+    content changes, no sooner than its inhibit time (0x1800:03) after the last. It never
+    answers an RPDO. Heartbeats (0x1017) carry the NMT state; a guard request (a remote
+    frame on 0x700 + node id) is answered with the NMT state and a toggle bit. When the
+    heartbeat of the node configured in 0x1016:01 stops for its consumer time, or (node
+    guarding) no guard request comes for the life time 0x100C x 0x100D, the drive sends
+    EMCY 0x8130 and, in OPERATION ENABLED, acts on 0x6007 (1 fault, 2 disable voltage, 3
+    quick stop at 0x6085). Missing RPDOs for
     ``rpdo_timeout_s`` in OPERATION ENABLED cause a quick stop and EMCY 0x8250. When the
     error register returns to zero the drive sends EMCY 0x0000. Every EMCY code also goes
     to the pre-defined error field 0x1003 (newest first; writing 0 to 0x1003:00 clears it).
@@ -252,23 +292,23 @@ class SimulatedDrive:
     :param bus: bus the drive sends on and receives from.
     :param node_id: CANopen node id, 1 to 127.
     :param actuator: the physics behind the drive.
-    :param counts_per_m: position and velocity scale on the wire (counts per m).
+    :param vendor: which drive it is (:data:`VENDORS`): its EDS and its units.
     :param heartbeat_period_s: heartbeat producer period (s) at boot (0x1017); 0: none.
     :param rpdo_timeout_s: RPDO watchdog (s) in OPERATION ENABLED; 0 disables it.
     :param tpdo_period_s: event timer (s) of TPDO1 at boot (0x1800:05); 0: none.
     :param quick_stop_decel_m_s2: deceleration (m/s^2) of a quick stop at boot (0x6085).
-    :param eds_path: the drive's EDS; by default the simulated drive's own.
     :raises SimulationParameterError: if a parameter is out of range.
     """
 
     def __init__(self, bus: can.BusABC, node_id: int, actuator: LeadScrewActuator,
-                 counts_per_m: float = 1e6, heartbeat_period_s: float = 0.1,
-                 rpdo_timeout_s: float = 0.1, tpdo_period_s: float = 0.01,
-                 quick_stop_decel_m_s2: float = 0.5, eds_path: Optional[str] = None) -> None:
+                 heartbeat_period_s: float = 0.1, rpdo_timeout_s: float = 0.1,
+                 tpdo_period_s: float = 0.01, quick_stop_decel_m_s2: float = 0.5,
+                 vendor: str = 'flexure_ctrl') -> None:
         if not 1 <= node_id <= 127:
             raise SimulationParameterError(f'node id must be 1 to 127, got {node_id}')
-        if not counts_per_m > 0.0:
-            raise SimulationParameterError(f'counts_per_m must be > 0, got {counts_per_m}')
+        if vendor not in VENDORS:
+            raise SimulationParameterError(f'vendor must be one of {", ".join(VENDORS)}, '
+                                           f'got {vendor!r}')
         if not 0.0 <= heartbeat_period_s <= 65.535:
             raise SimulationParameterError(
                 f'heartbeat period must be 0 to 65.535 s, got {heartbeat_period_s}')
@@ -282,21 +322,23 @@ class SimulatedDrive:
         self._bus = bus
         self.node_id = node_id
         self.actuator = actuator
-        self.counts_per_m = float(counts_per_m)
+        self.vendor = vendor
+        self.units = VENDORS[vendor].units
         self.rpdo_timeout_s = float(rpdo_timeout_s)
         self._heartbeat_id = cia402.HEARTBEAT_BASE + node_id
         self._emcy_id = cia402.EMCY_BASE + node_id
         self._sdo_request_id = cia402.SDO_CLIENT_TO_SERVER_BASE + node_id
-        self.objects = DriveObjects(eds_path or find_config_file(SIMULATED_DRIVE_EDS),
-                                    node_id, self._send)
+        self.objects = DriveObjects(find_config_file(VENDORS[vendor].eds_file), node_id,
+                                    self._send)
         self._attach_objects()
         objects = self.objects
         objects.set_boot_value(cia402.HEARTBEAT_PRODUCER_TIME, 0,
                                int(round(heartbeat_period_s * 1000.0)))
-        objects.set_boot_value(TPDO1_COMMUNICATION, PDO_EVENT_TIMER,
-                               int(round(tpdo_period_s * 1000.0)))
+        if objects.has(TPDO1_COMMUNICATION, PDO_EVENT_TIMER):
+            objects.set_boot_value(TPDO1_COMMUNICATION, PDO_EVENT_TIMER,
+                                   int(round(tpdo_period_s * 1000.0)))
         objects.set_boot_value(QUICK_STOP_DECELERATION, 0,
-                               int(round(quick_stop_decel_m_s2 * self.counts_per_m)))
+                               self.units.acceleration(quick_stop_decel_m_s2))
         objects.set_boot_value(IDENTITY, 4, node_id)  # serial number
         # 0x1017, kept here as well: the drive reads it every tick.
         self._heartbeat_s = objects.read(cia402.HEARTBEAT_PRODUCER_TIME) / 1000.0
@@ -305,6 +347,12 @@ class SimulatedDrive:
         self._now_s: Optional[float] = None
         self._next_heartbeat_s: Optional[float] = None
         self._next_tpdo_s: Optional[float] = None
+        self._syncs = 0
+        self._last_tpdo_s: Optional[float] = None
+        self._last_tpdo_data = b''
+        # Node guarding: when the last guard request came (s), and the toggle bit.
+        self._guarded_s: Optional[float] = None
+        self._guard_toggle = 0
         self._last_rpdo_s: Optional[float] = None
         self._fault_active = False
         self._communication_error = False
@@ -330,7 +378,8 @@ class SimulatedDrive:
             attach(PRE_DEFINED_ERROR_FIELD, subindex,
                    read=lambda i=subindex: self._errors[i - 1] if i <= len(self._errors)
                    else 0)
-        attach(CONSUMER_HEARTBEAT_TIME, 1, write=self._write_consumer_heartbeat)
+        if self.objects.has(CONSUMER_HEARTBEAT_TIME, 1):
+            attach(CONSUMER_HEARTBEAT_TIME, 1, write=self._write_consumer_heartbeat)
         attach(cia402.HEARTBEAT_PRODUCER_TIME, write=self._write_heartbeat_time)
         attach(ERROR_CODE, read=lambda: self._error_code)
         attach(cia402.CONTROLWORD, read=lambda: self._controlword,
@@ -340,8 +389,8 @@ class SimulatedDrive:
                write=self._write_mode_of_operation)
         attach(cia402.MODES_OF_OPERATION_DISPLAY, read=lambda: self.mode_of_operation)
         attach(cia402.POSITION_ACTUAL_VALUE, read=self._position_counts)
-        attach(VELOCITY_ACTUAL_VALUE, read=lambda: _clip_int32(
-            self.actuator.velocity_m_s * self.counts_per_m))
+        attach(VELOCITY_ACTUAL_VALUE, read=lambda: self.units.velocity(
+            self.actuator.velocity_m_s))
         attach(cia402.TARGET_VELOCITY, read=lambda: self._target_velocity_counts_s,
                write=self._write_target_velocity)
 
@@ -373,7 +422,7 @@ class SimulatedDrive:
     @property
     def quick_stop_decel_m_s2(self) -> float:
         """Quick-stop deceleration (m/s^2), from 0x6085."""
-        return self.objects.read(QUICK_STOP_DECELERATION) / self.counts_per_m
+        return self.objects.read(QUICK_STOP_DECELERATION) / self.units.acceleration_per_m_s2
 
     @property
     def tpdo_period_s(self) -> float:
@@ -402,6 +451,7 @@ class SimulatedDrive:
                 self._handle(message, now_s)
             self._check_rpdo_timeout(now_s)
             self._check_consumer_heartbeat(now_s)
+            self._check_life_guarding(now_s)
             self._step_physics(dt_s)
             self._send_periodic(now_s)
 
@@ -429,10 +479,16 @@ class SimulatedDrive:
     # Frame handling ---------------------------------------------------------------------
 
     def _handle(self, message: can.Message, now_s: float) -> None:
-        if message.is_extended_id or message.is_error_frame or message.is_remote_frame:
+        if message.is_extended_id or message.is_error_frame:
             return
         cob_id = message.arbitration_id
-        if cob_id == cia402.NMT_COB_ID:
+        if message.is_remote_frame:
+            if cob_id == self._heartbeat_id:
+                self._answer_guard(now_s)
+            return
+        if cob_id == cia402.SYNC_COB_ID:
+            self._on_sync(now_s)
+        elif cob_id == cia402.NMT_COB_ID:
             self._handle_nmt(bytes(message.data))
         elif cob_id == self._consumer_id:
             self._consumer_heard_s = now_s
@@ -488,7 +544,39 @@ class SimulatedDrive:
             self._target_velocity_counts_s = target
         elif self.state is not cia402.DriveState.OPERATION_ENABLED:
             self._target_velocity_counts_s = 0
-        self._send_tpdo()
+
+    def _on_sync(self, now_s: float) -> None:
+        """A SYNC: a TPDO of transmission type n goes out on every n-th one."""
+        if self.nmt_state is not cia402.NmtState.OPERATIONAL:
+            return
+        self._syncs += 1
+        every = self.objects.tpdo_transmission_type
+        if 1 <= every <= 240 and self._syncs % every == 0:
+            self._send_tpdo(now_s)
+
+    def _answer_guard(self, now_s: float) -> None:
+        """Answer a guard request: NMT state and toggle bit; life guarding watches them."""
+        self._send(self._heartbeat_id, bytes([self._guard_toggle | self.nmt_state.value]))
+        self._guard_toggle ^= 0x80
+        self._guarded_s = now_s
+
+    def _life_time_s(self) -> float:
+        """Guard time x life time factor (s); 0 when the drive has no node guarding."""
+        if not self.objects.has(GUARD_TIME, 0) or not self.objects.has(LIFE_TIME_FACTOR, 0):
+            return 0.0
+        return self.objects.read(GUARD_TIME) * self.objects.read(LIFE_TIME_FACTOR) / 1000.0
+
+    def _check_life_guarding(self, now_s: float) -> None:
+        guarded_s = self._guarded_s
+        if guarded_s is None:
+            return
+        life_time_s = self._life_time_s()
+        if life_time_s <= 0.0 or now_s - guarded_s <= life_time_s:
+            return
+        _log.warning('node %d: no guard request for %.3f s (life time %.3f s)', self.node_id,
+                     now_s - guarded_s, life_time_s)
+        self._guarded_s = None  # one event; guarding again from the next request
+        self._master_lost()
 
     def _write_error_count(self, value: int) -> int:
         if value != 0:
@@ -576,7 +664,12 @@ class SimulatedDrive:
         _log.warning('node %d: no heartbeat from node %d for %.3f s', self.node_id,
                      self._consumer_id - cia402.HEARTBEAT_BASE, now_s - heard_s)
         self._consumer_heard_s = None  # one event; watching again from the next heartbeat
-        option = self.objects.read(ABORT_CONNECTION_OPTION)
+        self._master_lost()
+
+    def _master_lost(self) -> None:
+        """The master fell silent: EMCY 0x8130, and act on 0x6007 if enabled."""
+        option = (self.objects.read(ABORT_CONNECTION_OPTION)
+                  if self.objects.has(ABORT_CONNECTION_OPTION, 0) else ABORT_QUICK_STOP)
         if self.state is cia402.DriveState.OPERATION_ENABLED and option != ABORT_NO_ACTION:
             self._communication_stop(EMCY_HEARTBEAT, option)
         else:
@@ -602,7 +695,7 @@ class SimulatedDrive:
             deceleration = self.quick_stop_decel_m_s2
         elif (self.state is cia402.DriveState.OPERATION_ENABLED
               and self.mode_of_operation == cia402.PROFILE_VELOCITY_MODE):
-            velocity = self._target_velocity_counts_s / self.counts_per_m
+            velocity = self._target_velocity_counts_s / self.units.velocity_per_m_s
         self.actuator.step(velocity, dt_s, deceleration_m_s2=deceleration)
 
     # NMT life cycle ---------------------------------------------------------------------
@@ -613,6 +706,8 @@ class SimulatedDrive:
         self.nmt_state = cia402.NmtState.PRE_OPERATIONAL
         self._next_heartbeat_s = None
         self._next_tpdo_s = None
+        self._guarded_s = None
+        self._guard_toggle = 0
 
     def _reset_application(self) -> None:
         self._fault_active = False
@@ -638,11 +733,20 @@ class SimulatedDrive:
         if heartbeat_s > 0.0:
             self._next_heartbeat_s = self._due(self._next_heartbeat_s, now_s, heartbeat_s,
                                                self._send_heartbeat)
-        tpdo_s = self.objects.tpdo_event_timer_s()
-        if self.nmt_state is cia402.NmtState.OPERATIONAL and tpdo_s > 0.0:
-            self._next_tpdo_s = self._due(self._next_tpdo_s, now_s, tpdo_s, self._send_tpdo)
-        else:
+        objects = self.objects
+        if self.nmt_state is not cia402.NmtState.OPERATIONAL or \
+                objects.tpdo_transmission_type < 254:
             self._next_tpdo_s = None
+            return
+        tpdo_s = objects.tpdo_event_timer_s()
+        if tpdo_s > 0.0:
+            self._next_tpdo_s = self._due(self._next_tpdo_s, now_s, tpdo_s,
+                                          lambda: self._send_tpdo(now_s))
+        last_s = self._last_tpdo_s
+        if last_s is None or now_s - last_s >= objects.tpdo_inhibit_time_s():
+            data = objects.encode_tpdo()
+            if data != self._last_tpdo_data:  # event-driven: on a change of its content
+                self._send_tpdo(now_s, data)
 
     @staticmethod
     def _due(next_s: Optional[float], now_s: float, period_s: float,
@@ -660,12 +764,14 @@ class SimulatedDrive:
         self._send(self._heartbeat_id, cia402.encode_heartbeat(self.nmt_state))
 
     def _position_counts(self) -> int:
-        return _clip_int32(self.actuator.pot_reading_m() * self.counts_per_m)
+        return self.units.position(self.actuator.pot_reading_m())
 
-    def _send_tpdo(self) -> None:
+    def _send_tpdo(self, now_s: float, data: Optional[bytes] = None) -> None:
         cob_id = self.objects.tpdo.cob_id
         if cob_id is not None:
-            self._send(cob_id, self.objects.encode_tpdo())
+            data = self.objects.encode_tpdo() if data is None else data
+            self._send(cob_id, data)
+            self._last_tpdo_s, self._last_tpdo_data = now_s, data
 
     def _send_emcy(self, error_code: int) -> None:
         if error_code != cia402.EMCY_NO_ERROR:
@@ -684,6 +790,3 @@ class SimulatedDrive:
         except can.CanError as error:
             _log.warning('node %d: could not send 0x%03X: %s', self.node_id, cob_id, error)
 
-
-def _clip_int32(value: float) -> int:
-    return min(max(int(round(value)), _INT32_MIN), _INT32_MAX)

@@ -36,6 +36,8 @@ RPDO1_MAPPING = 0x1600
 TPDO1_COMMUNICATION = 0x1800
 TPDO1_MAPPING = 0x1A00
 PDO_COB_ID = 1
+PDO_TRANSMISSION_TYPE = 2
+PDO_INHIBIT_TIME = 3
 PDO_EVENT_TIMER = 5
 COB_ID_INVALID = 1 << 31
 
@@ -84,6 +86,8 @@ class DriveObjects:
         self.sdo.network = self
         self.rpdo = self.tpdo = PdoLayout(None, (), struct.Struct('<'))
         self._tpdo_event_timer_s = 0.0
+        self._tpdo_inhibit_time_s = 0.0
+        self.tpdo_transmission_type = 255
         self._refresh_layouts()
 
     # Hooks of the drive -----------------------------------------------------------------
@@ -117,6 +121,14 @@ class DriveObjects:
         self._refresh_layouts()
 
     # Access -----------------------------------------------------------------------------
+
+    def has(self, index: int, subindex: int = 0) -> bool:
+        """Whether the drive's EDS lists the object."""
+        try:
+            self.variable(index, subindex)
+        except SdoAbortedError:
+            return False
+        return True
 
     def variable(self, index: int, subindex: int = 0) -> objectdictionary.ODVariable:
         """Return the EDS entry; :class:`SdoAbortedError` when the drive lacks it."""
@@ -232,11 +244,21 @@ class DriveObjects:
         # Read here, on a change, not on every tick of the drive.
         self.rpdo = self._layout(RPDO1_COMMUNICATION, RPDO1_MAPPING)
         self.tpdo = self._layout(TPDO1_COMMUNICATION, TPDO1_MAPPING)
-        self._tpdo_event_timer_s = self.read(TPDO1_COMMUNICATION, PDO_EVENT_TIMER) / 1000.0
+        self.tpdo_transmission_type = self.read(TPDO1_COMMUNICATION, PDO_TRANSMISSION_TYPE)
+        self._tpdo_event_timer_s = (self.read(TPDO1_COMMUNICATION, PDO_EVENT_TIMER) / 1000.0
+                                    if self.has(TPDO1_COMMUNICATION, PDO_EVENT_TIMER) else 0.0)
+        # CiA 301: the inhibit time counts in 100 us.
+        self._tpdo_inhibit_time_s = (self.read(TPDO1_COMMUNICATION, PDO_INHIBIT_TIME) * 1e-4
+                                     if self.has(TPDO1_COMMUNICATION, PDO_INHIBIT_TIME)
+                                     else 0.0)
 
     def tpdo_event_timer_s(self) -> float:
         """Return the event timer (s) of TPDO1; 0 when off."""
         return self._tpdo_event_timer_s
+
+    def tpdo_inhibit_time_s(self) -> float:
+        """Return the inhibit time (s) of TPDO1: the least gap between two; 0 for none."""
+        return self._tpdo_inhibit_time_s
 
     def encode_tpdo(self) -> bytes:
         """TPDO1's payload from the mapped objects' current values."""

@@ -93,7 +93,7 @@ class SimulatedRig:
             self._buses.append(bus)
             self.actuators.append(actuator)
             self.drives.append(SimulatedDrive(
-                bus, int(node_id), actuator, counts_per_m=float(drives['counts_per_m']),
+                bus, int(node_id), actuator, vendor=drives['vendor'],
                 heartbeat_period_s=float(drives['heartbeat_period_s']),
                 rpdo_timeout_s=float(drives['rpdo_timeout_s']),
                 tpdo_period_s=float(drives['tpdo_period_s'])))

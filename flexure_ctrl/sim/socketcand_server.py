@@ -114,7 +114,9 @@ def parse_send(tokens: List[str]) -> can.Message:
     Frame of a raw-mode ``< send <id> <len> <byte> ... >`` command, split into tokens.
 
     As in socketcand, an id written with eight digits is extended, one with at most
-    three is standard; length and bytes are hex.
+    three is standard; length and bytes are hex. A length with no bytes is a remote frame
+    of that length, as python-can's client writes one (a node-guarding request: length
+    1): the bus passes it on as SocketCAN does.
 
     :raises SocketcandProtocolError: if the command is malformed.
     """
@@ -126,6 +128,9 @@ def parse_send(tokens: List[str]) -> can.Message:
     if can_id > (0x1FFFFFFF if extended else 0x7FF):
         raise SocketcandProtocolError(f'CAN id {id_text!r} out of range')
     length = _hex_field(length_text, 2, 'data length')
+    if length and not byte_texts and length <= 8:
+        return can.Message(arbitration_id=can_id, is_extended_id=extended,
+                           is_remote_frame=True, dlc=length)
     if length > 8 or len(byte_texts) != length:
         raise SocketcandProtocolError(
             f'data length {length_text!r} with {len(byte_texts)} data bytes')
