@@ -6,7 +6,10 @@ the rig, the loop configured and activated as ``flexure-ctrl up`` does. It commi
 drive (consumer heartbeat on the loop's own heartbeat, 0x6007 = quick stop) and jogs it;
 the test kills the loop with SIGKILL mid-motion and watches the bus: the drive must
 quick-stop and send EMCY 0x8130 within its consumer heartbeat time of the loop's last
-heartbeat.
+heartbeat. A drive without a consumer heartbeat (the simulator's ``guarding`` vendor) is
+commissioned for node guarding instead, and must quick-stop within its life time of the
+loop's last guard request. With the loop dead nobody sends SYNC: the test does, to see
+the drive's TPDOs.
 """
 
 import os
@@ -20,6 +23,7 @@ import can
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import DriveState
 from flexure_ctrl.core.design import find_config_file
+from flexure_ctrl.sim.drive import VENDORS
 from helpers import free_port, wait_for
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
@@ -63,17 +67,22 @@ def processes():
                 process.wait()
 
 
+@pytest.mark.parametrize('vendor', ['flexure_ctrl', 'guarding'])
 def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_time(
-        processes, context, tmp_path):
+        processes, context, tmp_path, vendor):
     can_port = free_port()
     # A node's own section in a parameter file wins over -p: override in a file of its own.
     overrides = tmp_path / 'overrides.yaml'
     overrides.write_text(yaml.safe_dump({'/actuator_1': {'ros__parameters': {
-        'can': {'port': can_port}, 'drive': {'consumer_heartbeat_s': CONSUMER_HEARTBEAT_S}}}}))
+        'can': {'port': can_port}, 'drive': {
+            'consumer_heartbeat_s': CONSUMER_HEARTBEAT_S,
+            'eds_file': VENDORS[vendor].eds_file}}}}))
+    sim_config = tmp_path / 'simulator.yaml'
+    sim_config.write_text(yaml.safe_dump({'drives': {'vendor': vendor}}))
     processes.append(subprocess.Popen(
         [sys.executable, '-m', 'flexure_ctrl.cli.main', 'sim', '--can-port', str(can_port),
-         '--tracker-port', str(free_port())], stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL))
+         '--tracker-port', str(free_port()), '--sim-config', str(sim_config)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     sniffer = connect_sniffer(can_port, 30.0)
     loop = subprocess.Popen(
         [sys.executable, '-m', 'flexure_ctrl.nodes.actuator_loop', '--ros-args',
@@ -127,14 +136,26 @@ def test_sigkill_of_the_loop_process_quick_stops_its_drive_within_the_consumer_t
             receive(time.monotonic() + 0.02)
         os.kill(loop.pid, signal.SIGKILL)
         killed_s = time.time()
-        receive(time.monotonic() + CONSUMER_HEARTBEAT_S + 1.0,
-                lambda: statusword_state() is DriveState.QUICK_STOP_ACTIVE)
-        receive(time.monotonic() + 0.3)
+        sync = can.Message(arbitration_id=cia402.SYNC_COB_ID, is_extended_id=False, data=b'')
+
+        def watch(duration_s, stop=lambda: False):
+            end_s = time.monotonic() + duration_s
+            while time.monotonic() < end_s and not stop():
+                sniffer.send(sync)
+                receive(time.monotonic() + 0.02)
+        watch(CONSUMER_HEARTBEAT_S + 1.0,
+              lambda: statusword_state() is DriveState.QUICK_STOP_ACTIVE)
+        watch(0.3)
     finally:
         executor.shutdown()
         node.destroy_node()
         sniffer.shutdown()
-    last_heartbeat_s = max(t for t, c, _ in frames if c == cia402.HEARTBEAT_BASE + MASTER_NODE_ID)
+    if vendor == 'guarding':  # the loop's guard requests: remote frames, no data here
+        last_heartbeat_s = max(t for t, c, d in frames
+                               if c == cia402.HEARTBEAT_BASE + NODE_ID and not d)
+    else:
+        last_heartbeat_s = max(t for t, c, _ in frames
+                               if c == cia402.HEARTBEAT_BASE + MASTER_NODE_ID)
     emergencies = [(t, cia402.decode_emcy(d).error_code) for t, c, d in frames
                    if c == cia402.EMCY_BASE + NODE_ID]
     assert [code for _, code in emergencies] == [0x8130], emergencies
