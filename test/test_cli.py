@@ -9,9 +9,9 @@ import time
 
 from flexure_ctrl.cli import ros_probe
 from flexure_ctrl.cli.launcher import free_port, InGraph, Launcher, Listening
-from flexure_ctrl.cli.main import main
+from flexure_ctrl.cli.main import build_parser, main
 from flexure_ctrl.cli.ros_probe import RosProbe
-from flexure_ctrl.cli.up_command import SIM_BACKGROUND_NICENESS
+from flexure_ctrl.cli.up_command import plan_launches, SIM_BACKGROUND_NICENESS
 from flexure_ctrl.core.design import load_design
 from flexure_ctrl.core.kinematics import TwoLinkArm
 from flexure_ctrl.nodes.common import destroy_rcl_node
@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from rclpy.client import Client
 from rclpy.executors import SingleThreadedExecutor
+import yaml
 from rclpy.lifecycle import LifecycleNode
 from rclpy.task import Future
 
@@ -243,3 +244,21 @@ def test_a_period_not_above_zero_is_refused_before_any_process_starts(
     assert '--period must be > 0 s' in lines[0]
     assert 'Traceback' not in result.stderr
     assert not out.exists() and not (tmp_path / 'bags').exists()
+
+
+def test_up_with_a_simulated_vendor_gives_the_loops_its_eds_and_units(tmp_path):
+    sim_config = tmp_path / 'rpm.yaml'
+    sim_config.write_text('drives:\n  vendor: rpm\n')
+    parser = build_parser()
+    arguments = parser.parse_args(['up', '--design', 'cfa', '--sim', '--sim-config',
+                                   str(sim_config), '--ros-arg',
+                                   'actuator_2:drive.velocity_unit:=inc/s'])
+    plan_launches(arguments, tmp_path)
+    overrides = yaml.safe_load((tmp_path / 'overrides.yaml').read_text())
+    drive_1 = overrides['/actuator_1']['ros__parameters']['drive']
+    assert drive_1 == {'eds_file': 'drives/sim_rpm.eds', 'position_units_per_m': 4096000.0,
+                       'velocity_units_per_m_s': 30000.0,
+                       'acceleration_units_per_m_s2': 30000.0, 'position_unit': 'inc',
+                       'velocity_unit': 'rev/min', 'acceleration_unit': 'rev/min/s'}
+    # What the command line says wins.
+    assert overrides['/actuator_2']['ros__parameters']['drive']['velocity_unit'] == 'inc/s'

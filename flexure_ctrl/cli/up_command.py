@@ -22,6 +22,8 @@ from flexure_ctrl import interface
 from flexure_ctrl.cli.launcher import Launcher, node_launches, RUN_NODES, sim_launch
 from flexure_ctrl.core.design import find_config_file, find_design_file, load_design, nest_dotted
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.sim.config import load_sim_config
+from flexure_ctrl.sim.drive import loop_parameters
 import yaml
 
 # With --sim everything shares one machine, often a small one. The nodes that make the
@@ -150,6 +152,13 @@ def plan_launches(arguments: argparse.Namespace, folder: Path):
             raise UpOptionError(f'--ros-arg {extra!r}: expected NODE:NAME:=VALUE '
                                 f'with NODE one of {", ".join(per_node)}')
         per_node[node][name] = yaml.safe_load(value)
+    if arguments.sim:
+        # The loops speak to the drive the simulator is (drives.vendor): its EDS and units,
+        # unless given on the command line.
+        vendor = load_sim_config(arguments.sim_config)['drives']['vendor']
+        for node in interface.ACTUATOR_NAMES:
+            for name, value in loop_parameters(vendor).items():
+                per_node[node].setdefault(name, value)
     if arguments.can_port:
         for node in interface.ACTUATOR_NAMES:
             per_node[node]['can.port'] = can_port

@@ -23,7 +23,7 @@ import logging
 import math
 import threading
 import time
-from typing import Callable, Optional
+from typing import Callable, Dict, Optional
 
 import can
 from flexure_ctrl.core import cia402
@@ -259,6 +259,19 @@ class LeadScrewActuator:
         if quantum > 0.0:
             value = round(value / quantum) * quantum
         return float(value)
+
+
+def loop_parameters(vendor: str) -> Dict[str, object]:
+    """The actuator loop's ``drive.*`` parameters that fit the simulated drive ``vendor``."""
+    chosen = VENDORS[vendor]
+    units = chosen.units
+    return {'drive.eds_file': chosen.eds_file,
+            'drive.position_units_per_m': units.position_per_m,
+            'drive.velocity_units_per_m_s': units.velocity_per_m_s,
+            'drive.acceleration_units_per_m_s2': units.acceleration_per_m_s2,
+            'drive.position_unit': units.position_unit,
+            'drive.velocity_unit': units.velocity_unit,
+            'drive.acceleration_unit': units.acceleration_unit}
 
 
 class SimulatedDrive:
