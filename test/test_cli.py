@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from rclpy.client import Client
 from rclpy.executors import SingleThreadedExecutor
-import yaml
 from rclpy.lifecycle import LifecycleNode
 from rclpy.task import Future
+import yaml
 
 
 def read_csv(path):

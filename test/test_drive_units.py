@@ -54,7 +54,7 @@ def test_stated_units_are_checked_and_what_was_not_checked_is_said():
     assert check_stated(DriveUnits(), {}, None, 1)[0] == (
         "the drive does not state its position unit (no 0x60A8): the rig file's is taken "
         '(inc)')
-    with pytest.raises(DriveUnitsError, match=r"^drive 1: 0x60AA states its acceleration "
+    with pytest.raises(DriveUnitsError, match=r'^drive 1: 0x60AA states its acceleration '
                        r"unit is rev/min/s \(0x00B44703\); the rig file's "
                        r'drive.acceleration_unit is inc/s/s'):
         check_stated(DriveUnits(4096000, 30000, 30000, 'inc', 'rpm', 'inc/s/s'), stated,

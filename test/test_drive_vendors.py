@@ -44,7 +44,7 @@ def units(vendor: str) -> DriveUnits:
 
 @pytest.fixture
 def drive_options(vendor: str) -> Dict[str, object]:
-    """The ``rig`` fixture's drive: the test's ``vendor``."""
+    """Return the ``rig`` fixture's drive options: the test's ``vendor``."""
     # No RPDO watchdog: what stops a drive whose master died is its protection alone.
     return {'node_id': NODE_ID, 'lag_s': 0.02, 'seed': 5, 'rpdo_timeout_s': 0.0,
             'vendor': vendor}
@@ -168,7 +168,7 @@ def test_units_that_differ_from_what_the_drive_states_are_refused_in_one_line(bu
     with pytest.raises(CommissioningError) as refused:
         commission(bus, description(RPM, units=DriveUnits(4096000, 4096000, 4096000)))
     text = str(refused.value)
-    assert text == ("drive 3: 0x60A9 states its velocity unit is rev/min (0x00B44700); the "
+    assert text == ('drive 3: 0x60A9 states its velocity unit is rev/min (0x00B44700); the '
                     "rig file's drive.velocity_unit is inc/s: set it and the scale to the "
                     "drive's units")
     # The right names and a wrong scale: the encoder resolution (0x608F) tells.

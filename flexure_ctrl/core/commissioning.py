@@ -298,7 +298,7 @@ class _Sdo:
 
     @property
     def node_id(self) -> int:
-        """The drive's node id."""
+        """Return the drive's node id."""
         return self._node.id
 
     def has(self, index: int, subindex: int = 0) -> bool:

@@ -115,7 +115,7 @@ def _read(node, dictionary, heartbeat_wait_s: float) -> List[Tuple[str, str]]:
 
 
 def _timing_lines(value) -> List[Tuple[str, str]]:
-    """When the PDOs go: transmission type, inhibit time, event timer."""
+    """Read when the PDOs go: transmission type, inhibit time, event timer."""
     lines = []
     for name, communication, _ in PDOS:
         kind, problem = value(communication, 2)
@@ -141,10 +141,10 @@ def _timing_lines(value) -> List[Tuple[str, str]]:
 
 
 def _protection_lines(value) -> List[Tuple[str, str]]:
-    """How the drive watches its master: consumer heartbeat, node guarding, or not at all."""
+    """Read how the drive watches its master: heartbeat, node guarding, or not at all."""
     producer, problem = value(0x1017)
-    lines = [("drive's heartbeat (0x1017)", problem or (f'every {producer} ms' if producer
-                                                         else 'off'))]
+    beat = f'every {producer} ms' if producer else 'off'
+    lines = [("drive's heartbeat (0x1017)", problem or beat)]
     consumer, consumer_problem = value(0x1016, 1)
     guard, guard_problem = value(0x100C)
     factor, factor_problem = value(0x100D)
@@ -166,7 +166,7 @@ def _protection_lines(value) -> List[Tuple[str, str]]:
 
 
 def _unit_lines(value, dictionary) -> List[Tuple[str, str]]:
-    """The units the drive states (0x60A8-0x60AA) and its factor group, where present."""
+    """Read the units the drive states (0x60A8-0x60AA) and its factor group, if present."""
     lines = []
     for quantity, index, _, _ in QUANTITIES:
         code, problem = value(index)

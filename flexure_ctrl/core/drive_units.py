@@ -123,15 +123,15 @@ class DriveUnits:
         return self.position_unit, self.velocity_unit, self.acceleration_unit
 
     def position(self, metres: float) -> int:
-        """Return a position (m) in drive units, rounded and clipped to INTEGER32."""
+        """Convert metres to drive position units, rounded and clipped to INTEGER32."""
         return clip_int32(metres * self.position_per_m)
 
     def velocity(self, metres_per_s: float) -> int:
-        """Return a velocity (m/s) in drive units, rounded and clipped to INTEGER32."""
+        """Convert m/s to drive velocity units, rounded and clipped to INTEGER32."""
         return clip_int32(metres_per_s * self.velocity_per_m_s)
 
     def acceleration(self, metres_per_s2: float) -> int:
-        """Return an acceleration (m/s^2) in drive units, rounded and clipped to >= 0."""
+        """Convert m/s^2 to drive acceleration units, rounded and clipped to >= 0."""
         return max(0, clip_int32(metres_per_s2 * self.acceleration_per_m_s2))
 
     def describe(self) -> str:
@@ -204,8 +204,8 @@ def check_stated(units: DriveUnits, stated: Dict[int, int],
         if name and said != name:
             raise DriveUnitsError(
                 f'drive {node_id}: 0x{index:04X} states its {quantity} unit is {said} '
-                f'(0x{stated[index]:08X}); the rig file\'s {name_key} is {name}: set it and '
-                f'the scale to the drive\'s units')
+                f"(0x{stated[index]:08X}); the rig file's {name_key} is {name}: set it and "
+                "the scale to the drive's units")
     position_name = units.position_unit or (
         unit_text(stated[SI_UNIT_POSITION]) if SI_UNIT_POSITION in stated else '')
     if position_name != 'inc':

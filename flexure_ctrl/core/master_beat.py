@@ -48,13 +48,13 @@ class SendLock:
 
 
 def heartbeat_frame(master_node_id: int) -> can.Message:
-    """The master's heartbeat: its node id, NMT operational."""
+    """Return the master's heartbeat: its node id, NMT operational."""
     return can.Message(arbitration_id=cia402.HEARTBEAT_BASE + master_node_id,
                        is_extended_id=False, data=cia402.encode_heartbeat(NmtState.OPERATIONAL))
 
 
 def guard_request(node_id: int) -> can.Message:
-    """A node-guarding request: a remote frame on the drive's NMT error control id."""
+    """Return a node-guarding request: a remote frame on the drive's error control id."""
     return can.Message(arbitration_id=cia402.HEARTBEAT_BASE + node_id, is_extended_id=False,
                        is_remote_frame=True, dlc=1)
 

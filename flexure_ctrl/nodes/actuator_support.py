@@ -104,7 +104,7 @@ _TYPED = (
     ('drive.eds_file', '', _STRING, "the drive's EDS or DCF (required); a relative path "
      'not found from the working folder is looked up in the config folders, e.g. '
      'drives/lead_screw_sim.eds'),
-    ('drive.position_unit', 'inc', _STRING, "the position unit the drive must state in "
+    ('drive.position_unit', 'inc', _STRING, 'the position unit the drive must state in '
      "0x60A8 (as flexure-ctrl drive info prints it, e.g. inc); '' for any"),
     ('drive.velocity_unit', 'inc/s', _STRING, 'the velocity unit the drive must state in '
      "0x60A9, e.g. inc/s or rev/min (rpm); '' for any"),

@@ -262,7 +262,7 @@ class LeadScrewActuator:
 
 
 def loop_parameters(vendor: str) -> Dict[str, object]:
-    """The actuator loop's ``drive.*`` parameters that fit the simulated drive ``vendor``."""
+    """Return the actuator loop's ``drive.*`` parameters that fit the simulated ``vendor``."""
     chosen = VENDORS[vendor]
     units = chosen.units
     return {'drive.eds_file': chosen.eds_file,
@@ -559,7 +559,7 @@ class SimulatedDrive:
             self._target_velocity_counts_s = 0
 
     def _on_sync(self, now_s: float) -> None:
-        """A SYNC: a TPDO of transmission type n goes out on every n-th one."""
+        """Take a SYNC: a TPDO of transmission type n goes out on every n-th one."""
         if self.nmt_state is not cia402.NmtState.OPERATIONAL:
             return
         self._syncs += 1
@@ -680,7 +680,7 @@ class SimulatedDrive:
         self._master_lost()
 
     def _master_lost(self) -> None:
-        """The master fell silent: EMCY 0x8130, and act on 0x6007 if enabled."""
+        """Act on a silent master: EMCY 0x8130, and 0x6007's reaction if enabled."""
         option = (self.objects.read(ABORT_CONNECTION_OPTION)
                   if self.objects.has(ABORT_CONNECTION_OPTION, 0) else ABORT_QUICK_STOP)
         if self.state is cia402.DriveState.OPERATION_ENABLED and option != ABORT_NO_ACTION:
@@ -802,4 +802,3 @@ class SimulatedDrive:
                                        is_extended_id=False))
         except can.CanError as error:
             _log.warning('node %d: could not send 0x%03X: %s', self.node_id, cob_id, error)
-
