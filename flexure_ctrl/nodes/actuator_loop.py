@@ -28,9 +28,10 @@ status topic; an error in one leaves the drive disabled and the bus closed.
 Safety: a drive fault, a lost heartbeat, a lost bus or an NMT state change stops
 commanding (one quick-stop frame) and latches ERROR until ``~/reset``; ``~/quick_stop``
 latches likewise; after a lost bus ``~/reset`` opens a new bus and commissions the drive
-again. The loop sends its own CANopen heartbeat, which the commissioned drive watches: if
-the process or the PC dies, the drive quick-stops by itself. The run owner then ends the
-run on the other loop too. A run owner
+again. From configure to cleanup the loop sends its own CANopen heartbeat (or, to a drive
+with node guarding, its guard requests) from a thread of its own, which the commissioned
+drive watches: if the process or the PC dies, the drive quick-stops by itself. The run
+owner then ends the run on the other loop too. A run owner
 silent for ``watchdog_timeout_s``, or a reading beyond ``path_tolerance_m`` from the plan,
 ramps the command to zero and holds it. :meth:`ActuatorLoop.safe_stop` (run on any
 shutdown) leaves the drive disabled at zero velocity and closes the bus.

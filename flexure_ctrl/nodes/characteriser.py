@@ -53,8 +53,10 @@ class Characteriser(Node):
     :param actuator: ``actuator_1`` or ``actuator_2``.
     :param stroke_limit_m: the design's stroke limit (m): the last clamp of every setpoint.
     :param rate_hz: setpoint rate (Hz); it must beat the actuator loop's watchdog.
-    :param discovery_wait_s: how long to watch the graph for other commanders after the
-        first data arrived, before the first setpoint.
+    :param discovery_wait_s: how long the graph must stay unchanged (no node, no
+        publisher of the setpoints coming or going) after the first data arrived, before
+        the first setpoint: discovery on a busy machine trickles in, and a commander seen
+        late would find the actuator already moving.
     :param ready_timeout_s: how long to wait for actuator states and tracker points.
     :param abort_hold_s: how long an abort publishes a hold at the measured position.
     :param hold_other: also command the other actuator to stay where it was at start.
@@ -85,6 +87,7 @@ class Characteriser(Node):
         self.phase = 'waiting'
         self._started_ns = time.monotonic_ns()
         self._ready_ns: Optional[int] = None
+        self._graph: Optional[tuple] = None
         self._abort_reason: Optional[str] = None
         self._abort_type: type = RunAborted
         self._other_hold_m: Optional[float] = None
@@ -214,8 +217,10 @@ class Characteriser(Node):
                 self._finish(CharacterisationError(
                     f'no data within {self.ready_timeout_s} s from: {", ".join(missing)}'))
             return
-        if self._ready_ns is None:
-            self._ready_ns = now_ns
+        graph = (tuple(sorted(self.get_node_names_and_namespaces())),
+                 self.count_publishers(SETPOINTS_TOPIC))
+        if self._ready_ns is None or graph != self._graph:
+            self._ready_ns, self._graph = now_ns, graph  # discovery still going on
         reason = self.conflicts()
         if reason is not None:
             self._finish(CommandConflictError(
