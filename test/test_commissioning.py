@@ -217,3 +217,19 @@ def test_drive_info_on_a_silent_node_is_one_line_naming_it(channel, rig, capsys)
     assert error.startswith('flexure-ctrl drive: error: drive 9: no answer to an SDO read of '
                             '0x1000:00 (Device type)')
     assert '\n' not in error
+
+
+def test_a_loop_of_its_own_sync_cob_id_is_answered_by_its_drive_alone(bus, rig):
+    commission(bus, description(sync_cob_id=0x0FF))
+    assert rig.drive.objects.read(0x1005) == 0x0FF
+    with DriveClient(bus, NODE_ID, sync=True, sync_cob_id=0x0FF) as client:
+        client.start(timeout_s=2.0)  # the drive's TPDOs answer its SYNCs
+        client.poll()
+        seen = client.tpdo_count
+        bus.send(can.Message(arbitration_id=0x080, is_extended_id=False, data=b''))
+        time.sleep(0.05)  # twenty ticks of the drive: no answer may come
+        client.poll()
+        assert client.tpdo_count == seen
+        client.sync()
+        wait_for(lambda: (client.poll() or True) and client.tpdo_count > seen, 1.0,
+                 'the answer to its own SYNC', poll_s=0.001)

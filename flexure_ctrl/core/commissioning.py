@@ -38,13 +38,14 @@ import can
 import canopen
 from canopen import objectdictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
-from flexure_ctrl.core import drive_units
+from flexure_ctrl.core import cia402, drive_units
 from flexure_ctrl.core.drive_client import DriveError
 from flexure_ctrl.core.drive_units import DriveUnits, DriveUnitsError
 from flexure_ctrl.core.errors import one_line
 
 CIA_402_PROFILE = 402
 DEVICE_TYPE = 0x1000
+COB_ID_SYNC = 0x1005
 GUARD_TIME = 0x100C
 LIFE_TIME_FACTOR = 0x100D
 CONSUMER_HEARTBEAT = 0x1016
@@ -153,6 +154,8 @@ class DriveDescription:
     :param protection: ``heartbeat`` (0x1016), ``guarding`` (0x100C/0x100D), ``auto``
         (the first of those the EDS has) or ``none`` (only if the rig file says so).
     :param tpdo_timing: ``sync`` (TPDO1 on each SYNC the loop sends) or ``event_timer``.
+    :param sync_cob_id: the COB-ID of this loop's SYNC, written to the drive's 0x1005: one
+        of its own per loop, so that each drive answers its own loop only.
     """
 
     eds_file: str
@@ -171,6 +174,7 @@ class DriveDescription:
     product_code: Optional[int] = None
     protection: str = 'auto'
     tpdo_timing: str = 'sync'
+    sync_cob_id: int = cia402.SYNC_COB_ID
 
     def __post_init__(self) -> None:
         if not 1 <= self.node_id <= 127 or not 1 <= self.master_node_id <= 127:
@@ -187,6 +191,9 @@ class DriveDescription:
         if self.protection not in PROTECTIONS:
             raise CommissioningError(f'drive.protection must be one of '
                                      f'{", ".join(PROTECTIONS)}, got {self.protection!r}')
+        if not 1 <= self.sync_cob_id <= 0x7FF:
+            raise CommissioningError(f'drive.sync_cob_id must lie in 1..0x7FF, got '
+                                     f'{self.sync_cob_id}')
         if self.tpdo_timing not in TPDO_TIMINGS:
             raise CommissioningError(f'drive.tpdo_timing must be one of '
                                      f'{", ".join(TPDO_TIMINGS)}, got {self.tpdo_timing!r}')
@@ -226,6 +233,11 @@ class DriveDescription:
                 dictionary, TPDO1_COMMUNICATION, PDO_EVENT_TIMER) is None:
             raise CommissioningError(f'{where}: drive.tpdo_timing is event_timer but the '
                                      'drive has no TPDO1 event timer (0x1800:05): use sync')
+        if (self.tpdo_timing == 'sync' and self.sync_cob_id != cia402.SYNC_COB_ID
+                and od_entry(dictionary, COB_ID_SYNC, 0) is None):
+            raise CommissioningError(
+                f'{where}: drive.sync_cob_id is 0x{self.sync_cob_id:03X} but the drive has no '
+                f'0x1005 (COB-ID SYNC message) to set it in: use 0x{cia402.SYNC_COB_ID:03X}')
         return self
 
 
@@ -409,6 +421,11 @@ def _commission(sdo: _Sdo, description: DriveDescription) -> Commissioned:
     _map_pdo(sdo, RPDO1_COMMUNICATION, RPDO1_MAPPING, 0x200 + node_id, RPDO_MAP,
              TRANSMISSION_EVENT_DRIVEN, None)
     if description.tpdo_timing == 'sync':
+        if sdo.has(COB_ID_SYNC, 0) and sdo.read(COB_ID_SYNC) != description.sync_cob_id:
+            sdo.write(COB_ID_SYNC, 0, description.sync_cob_id)
+            if sdo.read(COB_ID_SYNC) & 0x7FF != description.sync_cob_id:
+                raise CommissioningError(f'drive {node_id}: 0x1005 (COB-ID SYNC message) did '
+                                         f'not take 0x{description.sync_cob_id:03X}')
         _map_pdo(sdo, TPDO1_COMMUNICATION, TPDO1_MAPPING, 0x180 + node_id, TPDO_MAP,
                  TRANSMISSION_SYNC, None)
     else:

@@ -94,7 +94,7 @@ class DriveClient:
                  sdo_timeout_s: float = 0.5, heartbeat_timeout_s: float = 0.5,
                  clock: Callable[[], float] = time.monotonic, owns_bus: bool = False,
                  emergency_history: int = 16, tpdo_timeout_s: Optional[float] = None,
-                 sync: bool = False) -> None:
+                 sync: bool = False, sync_cob_id: int = cia402.SYNC_COB_ID) -> None:
         """
         Bind a client to a bus and a node id; nothing is sent until :meth:`start`.
 
@@ -112,6 +112,7 @@ class DriveClient:
             reported as a lost heartbeat, and this catches a drive that still beats but
             no longer sends its position.
         :param sync: send a SYNC after every RPDO (the drive's TPDO1 is type 1).
+        :param sync_cob_id: the COB-ID of that SYNC (the drive's 0x1005).
         :raises ValueError: a node id out of range.
         """
         if not 1 <= node_id <= 127:
@@ -125,7 +126,7 @@ class DriveClient:
                                else tpdo_timeout_s)
         self._clock = clock
         self._owns_bus = owns_bus
-        self._sync = can.Message(arbitration_id=cia402.SYNC_COB_ID, is_extended_id=False,
+        self._sync = can.Message(arbitration_id=sync_cob_id, is_extended_id=False,
                                  data=b'') if sync else None
         # Why the latest TPDO could not be read (e.g. the drive maps other objects).
         self.tpdo_problem = ''

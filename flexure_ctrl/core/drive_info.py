@@ -115,8 +115,9 @@ def _read(node, dictionary, heartbeat_wait_s: float) -> List[Tuple[str, str]]:
 
 
 def _timing_lines(value) -> List[Tuple[str, str]]:
-    """Read when the PDOs go: transmission type, inhibit time, event timer."""
-    lines = []
+    """Read when the PDOs go: SYNC, transmission type, inhibit time, event timer."""
+    sync, problem = value(0x1005)
+    lines = [('SYNC COB-ID (0x1005)', problem or f'0x{sync & 0x7FF:03X}')]
     for name, communication, _ in PDOS:
         kind, problem = value(communication, 2)
         if problem:

@@ -148,7 +148,8 @@ class DriveLink:
         self.commissioned = commission(self.bus, description, self._dictionary)
         return DriveClient(self.bus, description.node_id, units=description.units,
                            heartbeat_timeout_s=self._heartbeat_timeout_s,
-                           sync=description.tpdo_timing == 'sync')
+                           sync=description.tpdo_timing == 'sync',
+                           sync_cob_id=description.sync_cob_id)
 
     def _open(self) -> None:
         """Open the bus and start the master's beat on it (before the drive watches it)."""

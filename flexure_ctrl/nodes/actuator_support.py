@@ -82,6 +82,9 @@ _RANGED = (
      10.0, False),
     ('drive.tpdo_period_s', 0.01, 'event timer (s) of the position TPDO (0x1800:05), with '
      'drive.tpdo_timing event_timer', 0.001, 1.0, False),
+    ('drive.sync_cob_id', 0x080, 'COB-ID of the SYNC this loop sends each cycle (0x1005 '
+     'of its drive): one of its own per loop on a shared bus, e.g. 128 (0x080) and 255',
+     1, 0x7FF, False),
     ('drive.position_units_per_m', 1e6, "the drive's position units (0x6064, 0x607D) per m",
      1e-3, 1e12, False),
     ('drive.velocity_units_per_m_s', 1e6, "the drive's velocity units (0x60FF) per m/s",
@@ -166,6 +169,7 @@ class LoopParameters:
     drive_acceleration_unit: str
     drive_protection: str
     drive_tpdo_timing: str
+    drive_sync_cob_id: int
 
     def drive_description(self, error: Type[Exception]) -> DriveDescription:
         """
@@ -196,7 +200,7 @@ class LoopParameters:
                 self.drive_quick_stop_decel_m_s2, self.drive_profile_accel_m_s2,
                 self.drive_profile_decel_m_s2, self.drive_vendor_id or None,
                 self.drive_product_code or None, self.drive_protection,
-                self.drive_tpdo_timing)
+                self.drive_tpdo_timing, self.drive_sync_cob_id)
         except (DriveUnitsError, CommissioningError) as invalid:
             raise error(f'parameter {invalid}') from None
 

@@ -499,7 +499,7 @@ class SimulatedDrive:
             if cob_id == self._heartbeat_id:
                 self._answer_guard(now_s)
             return
-        if cob_id == cia402.SYNC_COB_ID:
+        if cob_id == self.objects.sync_cob_id:
             self._on_sync(now_s)
         elif cob_id == cia402.NMT_COB_ID:
             self._handle_nmt(bytes(message.data))

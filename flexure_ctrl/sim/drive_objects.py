@@ -31,6 +31,8 @@ ABORT_VALUE_HIGH = 0x06090031
 ABORT_VALUE_LOW = 0x06090032
 ABORT_DEVICE_STATE = 0x08000022
 
+COB_ID_SYNC = 0x1005
+SYNC_DEFAULT = 0x080
 RPDO1_COMMUNICATION = 0x1400
 RPDO1_MAPPING = 0x1600
 TPDO1_COMMUNICATION = 0x1800
@@ -88,6 +90,7 @@ class DriveObjects:
         self._tpdo_event_timer_s = 0.0
         self._tpdo_inhibit_time_s = 0.0
         self.tpdo_transmission_type = 255
+        self.sync_cob_id = SYNC_DEFAULT
         self._refresh_layouts()
 
     # Hooks of the drive -----------------------------------------------------------------
@@ -160,7 +163,7 @@ class DriveObjects:
         """Set a value from the drive's side: no access check, no hook."""
         variable = self.variable(index, subindex)
         self._stored[(index, subindex)] = variable.encode_raw(value)
-        if index in (RPDO1_COMMUNICATION, RPDO1_MAPPING, TPDO1_COMMUNICATION,
+        if index in (COB_ID_SYNC, RPDO1_COMMUNICATION, RPDO1_MAPPING, TPDO1_COMMUNICATION,
                      TPDO1_MAPPING):
             self._refresh_layouts()
 
@@ -244,6 +247,8 @@ class DriveObjects:
         # Read here, on a change, not on every tick of the drive.
         self.rpdo = self._layout(RPDO1_COMMUNICATION, RPDO1_MAPPING)
         self.tpdo = self._layout(TPDO1_COMMUNICATION, TPDO1_MAPPING)
+        self.sync_cob_id = (self.read(COB_ID_SYNC) & 0x7FF if self.has(COB_ID_SYNC)
+                            else SYNC_DEFAULT)
         self.tpdo_transmission_type = self.read(TPDO1_COMMUNICATION, PDO_TRANSMISSION_TYPE)
         self._tpdo_event_timer_s = (self.read(TPDO1_COMMUNICATION, PDO_EVENT_TIMER) / 1000.0
                                     if self.has(TPDO1_COMMUNICATION, PDO_EVENT_TIMER) else 0.0)
