@@ -65,6 +65,7 @@ from flexure_ctrl.nodes.actuator_support import declare_loop_parameters, diagnos
 from flexure_ctrl.nodes.actuator_support import level_of, link_values, LoopThread, status_of
 from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message, stamp_ns_of
 from flexure_ctrl.nodes.run_messages import word_message
+import rclpy.logging
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -493,18 +494,20 @@ class ActuatorLoop(LifecycleNode):
         self._shutting_down.set()
         self.thread.stop()
         self.diagnostics_timer.cancel()
+        # A signal has usually shut the context down by now: a logger not tied to the node
+        # prints without trying /rosout, whose publisher is gone.
+        logger = self.get_logger() if self.context.ok() else rclpy.logging.get_logger(
+            f'{self.get_name()}.stop')
         with self._lock:
             client = self.link.client
             try:
                 disabled = self.link.close(confirm_timeout_s=_DISABLE_CONFIRM_S)
             except (can.CanError, OSError) as error:
-                self.get_logger().error(
-                    f'safe stop: could not disable the drive: {one_line(error)}')
+                logger.error(f'safe stop: could not disable the drive: {one_line(error)}')
             else:
                 if disabled is not None:
-                    self.get_logger().info('safe stop: drive disabled at zero velocity' if
-                                           disabled else 'safe stop: disable sent at zero '
-                                           'velocity, not confirmed')
+                    logger.info('safe stop: drive disabled at zero velocity' if disabled
+                                else 'safe stop: disable sent at zero velocity, not confirmed')
             if client is not None and client.started and not self.position_stale:
                 # The last word on the state topic: where it stopped, commanded nothing.
                 self._publish_state(client.position_m, 0.0, time.time_ns())
