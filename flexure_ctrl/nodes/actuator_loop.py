@@ -65,8 +65,8 @@ from flexure_ctrl.nodes.actuator_support import declare_loop_parameters, diagnos
 from flexure_ctrl.nodes.actuator_support import level_of, link_values, LoopThread, status_of
 from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message, stamp_ns_of
 from flexure_ctrl.nodes.run_messages import word_message
-import rclpy.logging
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+import rclpy.logging
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
