@@ -165,7 +165,9 @@ def test_ctrl_c_saves_the_points_and_leaves_the_actuator_stopped(rig, tmp_path):
 
 
 def test_full_sweep_recovers_the_simulators_true_joint(rig, tmp_path):
-    code, output = characterise(tmp_path)
+    # The whole stroke, up and down, every 10 mm: each point is measured on its own, so
+    # ten of them test the recovery as nineteen do, in half the time.
+    code, output = characterise(tmp_path, '--step-mm', '10')
     assert code == 0, output
     summary = json.loads((tmp_path / 'summary.json').read_text())
     measured = load_design(summary['design_file'])
@@ -185,4 +187,4 @@ def test_full_sweep_recovers_the_simulators_true_joint(rig, tmp_path):
           f'|theta| {worst[2] * 1e3:.4f} mrad; hysteresis '
           f'{summary["hysteresis_max_theta_mrad"]:.3f} mrad')
     assert worst[0] < 0.05e-3 and worst[1] < 0.05e-3 and worst[2] < 0.5e-3
-    assert len(read_points_csv(tmp_path / 'points.csv')) == 38
+    assert len(read_points_csv(tmp_path / 'points.csv')) == 20

@@ -226,23 +226,20 @@ def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_pa
                          ids=['up', 'demo'])
 @pytest.mark.parametrize('period', ['0', '-5', 'nan', 'inf'])
 def test_a_period_not_above_zero_is_refused_before_any_process_starts(
-        tmp_path, command, period):
+        tmp_path, capsys, command, period):
     # `up` once took --period 0 as not given and ran the default path; demo plans what up
     # starts. Both refuse it by name, in one line, and start nothing (no output at all).
     out = tmp_path / 'out'
     extra = ['--out', str(out), '--bag-dir', str(tmp_path / 'bags')] if command == ['demo'] \
         else []
-    result = subprocess.run(
-        [sys.executable, '-m', 'flexure_ctrl.cli.main', *command, '--period', period, *extra],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=60,
-        env=os.environ)
-    assert result.returncode != 0
-    assert result.stdout == ''
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
+    assert main([*command, '--period', period, *extra]) != 0
+    printed = capsys.readouterr()
+    assert printed.out == ''
+    lines = printed.err.strip().splitlines()
+    assert len(lines) == 1, printed.err
     assert lines[0].startswith(f'flexure-ctrl {command[0]}: ')
     assert '--period must be > 0 s' in lines[0]
-    assert 'Traceback' not in result.stderr
+    assert 'Traceback' not in printed.err
     assert not out.exists() and not (tmp_path / 'bags').exists()
 
 

@@ -56,8 +56,8 @@ class Characteriser(Node):
     :param discovery_wait_s: how long the graph must stay unchanged (no node, no
         publisher of the setpoints coming or going) after the first data arrived, before
         the first setpoint: discovery on a busy machine trickles in (the test of it saw a
-        commander 1.5 s late, with 1 s here), and a commander seen late finds the
-        actuator already moving. A sweep takes minutes; 3 s before it costs nothing.
+        commander over 1 s late), and a commander seen late finds the actuator already
+        moving. A sweep takes minutes; 2 s before it cost nothing.
     :param ready_timeout_s: how long to wait for actuator states and tracker points.
     :param abort_hold_s: how long an abort publishes a hold at the measured position.
     :param hold_other: also command the other actuator to stay where it was at start.
@@ -66,7 +66,7 @@ class Characteriser(Node):
 
     @leaves_no_half_built_node
     def __init__(self, runner: SweepRunner, actuator: str, stroke_limit_m: float,
-                 rate_hz: float = 50.0, discovery_wait_s: float = 3.0,
+                 rate_hz: float = 50.0, discovery_wait_s: float = 2.0,
                  ready_timeout_s: float = 20.0, abort_hold_s: float = 0.3,
                  hold_other: bool = True,
                  on_finished: Optional[Callable[[Optional[Exception]], None]] = None,
