@@ -3,7 +3,6 @@
 import csv
 import io
 import os
-import subprocess
 import sys
 import time
 
