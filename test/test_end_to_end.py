@@ -246,6 +246,11 @@ def test_the_end_point_follows_the_path_within_the_uncorrected_band(rig_factory)
 
     assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
     assert any('[actuator_1]' in line and 'disabled' in line.lower() for line in rig.lines)
+    # A stop that up asked for reads clean: no warning, error or traceback from anyone.
+    stopping = next(i for i, line in enumerate(rig.lines) if line.startswith('[up] stopping'))
+    noise = [line for line in rig.lines[stopping:] if any(
+        word in line for word in ('WARN', 'ERROR', 'Traceback', 'Failed', 'rror:'))]
+    assert noise == [], '\n'.join(rig.lines[stopping:])
 
 
 def measured_design_file(folder: Path) -> Path:

@@ -513,6 +513,10 @@ class ActuatorLoop(LifecycleNode):
                 self._publish_state(client.position_m, 0.0, time.time_ns())
             self.drive.mode, self.drive.problem = Mode.STOPPED, 'node shut down'
 
+    def on_stop_requested(self) -> None:
+        """Cut a transition's waits short: a signal asked the process to stop."""
+        self._shutting_down.set()
+
     def destroy_node(self) -> None:
         """Stop the drive safely (if not done yet), then destroy the node."""
         self.safe_stop()
@@ -525,7 +529,10 @@ def main(args: Optional[List[str]] = None) -> None:
     # Everything imported so far lives as long as the process: keep it out of the
     # garbage collector's full passes, which would otherwise stall the loop for ms.
     gc.freeze()
-    common.run_node(ActuatorLoop, args)
+    # A signal asks for a stop, which comes between callbacks: rclpy's own handling raises
+    # KeyboardInterrupt wherever the main thread is, even inside rclpy's own objects
+    # (a half-built Task then printed a traceback at every stop).
+    common.run_node_to_a_clean_stop(ActuatorLoop, args)
 
 
 if __name__ == '__main__':

@@ -296,17 +296,22 @@ def run_node_to_a_clean_stop(node_factory: Callable[[], Node],
     which may be halfway through a write (the recorder, in the middle of a record in its
     chunk: the bag then holds a torn record and reads as garbage from there on). Here the
     signal only asks for a stop; the executor stops between callbacks, then the node's
-    ``safe_stop()`` runs as with :func:`run_node`. The previous handlers are restored.
+    ``safe_stop()`` runs as with :func:`run_node`. A node whose callbacks may wait long
+    (a transition retrying a drive) defines ``on_stop_requested()``, called from the
+    signal handler, to cut that wait short. The previous handlers are restored.
     """
     stop_requested = threading.Event()
+    node = None
 
     def request_stop(signal_number, frame) -> None:
         stop_requested.set()
+        hook = getattr(node, 'on_stop_requested', None)
+        if hook is not None:
+            hook()
 
     files = _start_rclpy(args, signal_handler_options=SignalHandlerOptions.NO)
     previous = {number: signal.signal(number, request_stop)
                 for number in (signal.SIGINT, signal.SIGTERM)}
-    node = None
     refused = None
     try:
         node = node_factory()
