@@ -98,6 +98,8 @@ def test_the_event_timer_is_used_where_the_rig_file_asks(bus, rig):
     assert found.tpdo_timing == 'event_timer'
     assert rig.drive.objects.read(0x1800, 2) == 255
     assert rig.drive.tpdo_period_s == pytest.approx(0.004)
+    # Its position changes all the time: no sooner than the period either (in 100 us).
+    assert rig.drive.objects.read(0x1800, 3) == 40
 
 
 def test_a_commissioned_drive_runs_and_quick_stops_when_its_master_falls_silent(bus, rig):

@@ -358,6 +358,13 @@ def test_an_rpdo_is_applied_at_once_and_never_answered_by_a_tpdo(bench):
     assert len(rig.rpdo(Controlword.ENABLE_OPERATION, 5000)) == 1  # the SYNC's
 
 
+def test_an_inhibit_time_changes_only_while_its_pdo_is_disabled(bench):
+    rig = bench()  # mapped: TPDO1 valid
+    assert rig.sdo(Sdo('download', 0x1800, 3, 20, 2)).value == 0x08000022
+    assert rig.sdo(Sdo('download', 0x1800, 1, 0x80000180 + NODE, 4)).kind == 'download_ok'
+    assert rig.sdo(Sdo('download', 0x1800, 3, 20, 2)).kind == 'download_ok'
+
+
 def test_a_tpdo_of_type_n_goes_on_every_nth_sync(bench):
     rig = bench()
     rig.sdo(Sdo('download', 0x1800, 2, 3, 1))
@@ -373,8 +380,11 @@ def test_a_tpdo_of_type_n_goes_on_every_nth_sync(bench):
 
 def test_an_event_driven_tpdo_goes_on_change_no_sooner_than_its_inhibit_time(bench):
     rig = bench(parameters=ideal(pot_noise_m=0.0), vendor='sync_only')
-    rig.sdo(Sdo('download', 0x1800, 2, 255, 1))
-    rig.sdo(Sdo('download', 0x1800, 3, 50, 2))  # 5 ms, in 100 us
+    for index, subindex, value, size in ((0x1800, 1, 0x80000180 + NODE, 4),
+                                         (0x1800, 2, 255, 1),
+                                         (0x1800, 3, 50, 2),  # 5 ms, in 100 us
+                                         (0x1800, 1, 0x180 + NODE, 4)):
+        assert rig.sdo(Sdo('download', index, subindex, value, size)).kind == 'download_ok'
     rig.enable()
     times = []
     for _ in range(100):  # 10 mm/s: the position changes every tick

@@ -429,8 +429,11 @@ def _commission(sdo: _Sdo, description: DriveDescription) -> Commissioned:
         _map_pdo(sdo, TPDO1_COMMUNICATION, TPDO1_MAPPING, 0x180 + node_id, TPDO_MAP,
                  TRANSMISSION_SYNC, None)
     else:
+        # Event-driven TPDOs also go on a change of their content, and a position changes
+        # all the time: the inhibit time keeps them to the period (CiA 301: in 100 us).
         _map_pdo(sdo, TPDO1_COMMUNICATION, TPDO1_MAPPING, 0x180 + node_id, TPDO_MAP,
-                 TRANSMISSION_EVENT_DRIVEN, int(round(description.tpdo_period_s * 1000.0)))
+                 TRANSMISSION_EVENT_DRIVEN, int(round(description.tpdo_period_s * 1000.0)),
+                 int(round(description.tpdo_period_s * 10000.0)))
     _protect(sdo, description)
     if sdo.has(ABORT_CONNECTION_OPTION, 0):
         sdo.write(ABORT_CONNECTION_OPTION, 0, ABORT_CONNECTION_QUICK_STOP)
@@ -501,8 +504,12 @@ def _software_limits(sdo: _Sdo, description: DriveDescription) -> Tuple[float, f
 
 def _map_pdo(sdo: _Sdo, communication: int, mapping: int, cob_id: int,
              entries: Tuple[Tuple[int, int, int], ...], transmission_type: int,
-             event_timer_ms: Optional[int]) -> None:
-    """Map one PDO in CiA 301 order (disable, map, count, enable), then read it back."""
+             event_timer_ms: Optional[int], inhibit_100us: Optional[int] = None) -> None:
+    """
+    Map one PDO in CiA 301 order (disable, map, count, timing, enable), then read it back.
+
+    The event timer and the inhibit time are written where given and the drive has them.
+    """
     sdo.write(communication, 1, COB_ID_INVALID | cob_id)
     sdo.write(mapping, 0, 0)
     words: List[int] = [(index << 16) | (subindex << 8) | bits
@@ -513,6 +520,8 @@ def _map_pdo(sdo: _Sdo, communication: int, mapping: int, cob_id: int,
     sdo.write(communication, PDO_TRANSMISSION_TYPE, transmission_type)
     if event_timer_ms is not None:
         sdo.write(communication, PDO_EVENT_TIMER, event_timer_ms)
+    if inhibit_100us is not None and sdo.has(communication, PDO_INHIBIT_TIME):
+        sdo.write(communication, PDO_INHIBIT_TIME, inhibit_100us)
     sdo.write(communication, 1, cob_id)
     found = [sdo.read(mapping, position) for position in range(1, len(words) + 1)]
     count = sdo.read(mapping, 0)

@@ -209,9 +209,12 @@ class DriveObjects:
     # PDOs -------------------------------------------------------------------------------
 
     def _pdo_rule(self, index: int, subindex: int, value: int) -> int:
-        """Check CiA 301's rule: a mapping changes only while its PDO is disabled."""
+        """Check CiA 301: a mapping or an inhibit time changes only while its PDO is off."""
         for communication, mapping in ((RPDO1_COMMUNICATION, RPDO1_MAPPING),
                                        (TPDO1_COMMUNICATION, TPDO1_MAPPING)):
+            if index == communication and subindex == PDO_INHIBIT_TIME and not self.read(
+                    communication, PDO_COB_ID) & COB_ID_INVALID:
+                return ABORT_DEVICE_STATE
             if index != mapping:
                 continue
             if not self.read(communication, PDO_COB_ID) & COB_ID_INVALID:
