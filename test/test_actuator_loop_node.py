@@ -672,6 +672,21 @@ def test_a_refused_drive_fails_configure_naming_the_object_and_enables_nothing(r
     assert rig.drive.state is DriveState.SWITCH_ON_DISABLED
 
 
+def test_a_drive_run_unprotected_by_the_rig_files_leave_is_a_warn_on_diagnostics(rig, harness):
+    node = harness.start_node('-p', 'drive.protection:=none')
+    harness.bring_up()
+    assert rig.drive.objects.read(0x1016, 1) == 0  # nothing watches this loop
+    assert node.link.beat is None
+    harness.spin_until(lambda: harness.diagnostics and 'unprotected' in
+                       harness.diagnostics[-1].message, 3.0, 'reported')
+    assert last_level(harness) == DiagnosticStatus.WARN
+    assert dict((v.key, v.value) for v in harness.diagnostics[-1].values)[
+        'drive protection'] == 'none'
+    # The word to the run owner is the loop's own: ready, whatever /diagnostics says.
+    harness.spin_until(lambda: harness.statuses and harness.statuses[-1].ready, 2.0,
+                       'ready to the run owner')
+
+
 def test_an_error_in_a_transition_leaves_the_drive_disabled_and_the_bus_closed(
         rig, harness, monkeypatch):
     node = harness.start_node()
