@@ -680,8 +680,8 @@ def test_a_drive_run_unprotected_by_the_rig_files_leave_is_a_warn_on_diagnostics
     harness.spin_until(lambda: harness.diagnostics and 'unprotected' in
                        harness.diagnostics[-1].message, 3.0, 'reported')
     assert last_level(harness) == DiagnosticStatus.WARN
-    assert dict((v.key, v.value) for v in harness.diagnostics[-1].values)[
-        'drive protection'] == 'none'
+    values = {value.key: value.value for value in harness.diagnostics[-1].values}
+    assert values['drive protection'] == 'none'
     # The word to the run owner is the loop's own: ready, whatever /diagnostics says.
     harness.spin_until(lambda: harness.statuses and harness.statuses[-1].ready, 2.0,
                        'ready to the run owner')
