@@ -14,14 +14,13 @@ configure, wait ``--pause-s``, activate, deactivate, cleanup, through lifecycle_
 import argparse
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
 import time
 
 import can
-from flexure_ctrl.cli.launcher import free_port
+from flexure_ctrl.cli.launcher import accepts_connections, free_port
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.errors import quiet_library_loggers
@@ -32,14 +31,6 @@ from rclpy.executors import SingleThreadedExecutor
 import yaml
 
 NODE_ID = 1
-
-
-def accepts(port: int) -> bool:
-    try:
-        with socket.create_connection(('127.0.0.1', port), timeout=1.0):
-            return True
-    except OSError:
-        return False
 
 
 def main() -> int:
@@ -64,7 +55,7 @@ def main() -> int:
          '--tracker-port', str(free_port())], stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL)]
     deadline_s = time.monotonic() + 60.0
-    while not accepts(can_port):
+    while not accepts_connections(can_port):
         if time.monotonic() > deadline_s:
             raise SystemExit('the simulated rig never opened its bus')
         time.sleep(0.1)  # polling a port that is not open yet

@@ -258,3 +258,13 @@ def test_up_with_a_simulated_vendor_gives_the_loops_its_eds_and_units(tmp_path):
                        'velocity_unit': 'rev/min', 'acceleration_unit': 'rev/min/s'}
     # What the command line says wins.
     assert overrides['/actuator_2']['ros__parameters']['drive']['velocity_unit'] == 'inc/s'
+
+
+def test_up_with_an_unknown_simulated_vendor_is_refused_in_one_line(tmp_path, capsys):
+    sim_config = tmp_path / 'acme.yaml'
+    sim_config.write_text('drives:\n  vendor: acme\n')
+    assert main(['up', '--design', 'cfa', '--sim', '--sim-config', str(sim_config)]) != 0
+    printed = capsys.readouterr()
+    assert printed.err.strip().splitlines() == [
+        'flexure-ctrl up: error: drives.vendor must be one of flexure_ctrl, sync_only, rpm, '
+        "guarding, got 'acme'"]

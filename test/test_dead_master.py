@@ -14,12 +14,12 @@ the drive's TPDOs.
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 
 import can
+from flexure_ctrl.cli.launcher import accepts_connections
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import DriveState
 from flexure_ctrl.core.design import find_config_file
@@ -38,18 +38,10 @@ MASTER_NODE_ID = 126  # 127 - node_id: the loop's default
 NODE_ID = 1
 
 
-def accepts(port: int) -> bool:
-    """Return whether a server on 127.0.0.1 accepts connections on ``port``."""
-    try:
-        with socket.create_connection(('127.0.0.1', port), timeout=1.0):
-            return True
-    except OSError:
-        return False  # not listening yet
-
-
 def connect_sniffer(port: int, timeout_s: float) -> can.BusABC:
     """Open a socketcand client on the simulated bus once its server accepts connections."""
-    wait_for(lambda: accepts(port), timeout_s, 'the simulated rig to open its bus', poll_s=0.1)
+    wait_for(lambda: accepts_connections(port), timeout_s, 'the simulated rig to open its bus',
+             poll_s=0.1)
     return can.Bus(interface='socketcand', channel='can0', host='127.0.0.1', port=port)
 
 

@@ -51,6 +51,15 @@ class Listening:
         return f'listening on {", ".join(str(port) for port in self.ports)}'
 
 
+def accepts_connections(port: int, host: str = '127.0.0.1') -> bool:
+    """Return whether a TCP server on ``host`` accepts a connection on ``port`` now."""
+    try:
+        socket.create_connection((host, port), timeout=1.0).close()
+    except OSError:
+        return False  # not listening yet
+    return True
+
+
 @dataclass(frozen=True)
 class InGraph:
     """Up once ``node`` is in the ROS graph with these endpoints (full names)."""
@@ -261,12 +270,9 @@ class Launcher:
         deadline = time.monotonic() + READY_TIMEOUT_S
         waiting = list(ready.ports)
         while waiting:
-            try:
-                socket.create_connection((ready.host, waiting[0]), timeout=1.0).close()
+            if accepts_connections(waiting[0], ready.host):
                 waiting.pop(0)
                 continue
-            except OSError:
-                pass
             if gone():
                 return 'stopped'
             if time.monotonic() > deadline:

@@ -71,7 +71,6 @@ ABORT_CONNECTION_QUICK_STOP = 3
 TRANSMISSION_SYNC = 1
 TRANSMISSION_EVENT_DRIVEN = 255
 COB_ID_INVALID = 1 << 31
-SDO_ABORT_READ_ONLY = 0x06010002
 
 # How the drive is protected against a dead master, and how its TPDO is timed.
 PROTECTIONS = ('auto', 'heartbeat', 'guarding', 'none')
@@ -351,7 +350,7 @@ class _Sdo:
         try:
             self._node.sdo.download(index, subindex, data)
         except (SdoAbortedError, SdoCommunicationError) as error:
-            if read_only_ok and getattr(error, 'code', None) == SDO_ABORT_READ_ONLY:
+            if read_only_ok and getattr(error, 'code', None) == cia402.SDO_ABORT_READ_ONLY:
                 return
             self._fail(f'writing {value} to', index, subindex, error)
 

@@ -261,9 +261,25 @@ class LeadScrewActuator:
         return float(value)
 
 
+def vendor_of(name: str) -> SimulatedVendor:
+    """
+    Return the simulated vendor called ``name`` (``drives.vendor``).
+
+    :raises SimulationParameterError: no such vendor.
+    """
+    if name not in VENDORS:
+        raise SimulationParameterError(f'drives.vendor must be one of {", ".join(VENDORS)}, '
+                                       f'got {name!r}')
+    return VENDORS[name]
+
+
 def loop_parameters(vendor: str) -> Dict[str, object]:
-    """Return the actuator loop's ``drive.*`` parameters that fit the simulated ``vendor``."""
-    chosen = VENDORS[vendor]
+    """
+    Return the actuator loop's ``drive.*`` parameters that fit the simulated ``vendor``.
+
+    :raises SimulationParameterError: no such vendor.
+    """
+    chosen = vendor_of(vendor)
     units = chosen.units
     return {'drive.eds_file': chosen.eds_file,
             'drive.position_units_per_m': units.position_per_m,
@@ -319,9 +335,6 @@ class SimulatedDrive:
                  vendor: str = 'flexure_ctrl') -> None:
         if not 1 <= node_id <= 127:
             raise SimulationParameterError(f'node id must be 1 to 127, got {node_id}')
-        if vendor not in VENDORS:
-            raise SimulationParameterError(f'vendor must be one of {", ".join(VENDORS)}, '
-                                           f'got {vendor!r}')
         if not 0.0 <= heartbeat_period_s <= 65.535:
             raise SimulationParameterError(
                 f'heartbeat period must be 0 to 65.535 s, got {heartbeat_period_s}')
@@ -335,13 +348,13 @@ class SimulatedDrive:
         self._bus = bus
         self.node_id = node_id
         self.actuator = actuator
-        self.vendor = vendor
-        self.units = VENDORS[vendor].units
+        chosen = vendor_of(vendor)
+        self.units = chosen.units
         self.rpdo_timeout_s = float(rpdo_timeout_s)
         self._heartbeat_id = cia402.HEARTBEAT_BASE + node_id
         self._emcy_id = cia402.EMCY_BASE + node_id
         self._sdo_request_id = cia402.SDO_CLIENT_TO_SERVER_BASE + node_id
-        self.objects = DriveObjects(find_config_file(VENDORS[vendor].eds_file), node_id,
+        self.objects = DriveObjects(find_config_file(chosen.eds_file), node_id,
                                     self._send)
         self._attach_objects()
         objects = self.objects
