@@ -520,12 +520,12 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
                             'rms_error_x_mm', 'rms_error_y_mm'}
         assert row['points'] > 0.5 * 500 * 14
         # Each run's bag opens in an independent reader, with the tracker's points, both
-        # actuators' 500 Hz states, the plan and the run's words in it.
+X and the run's words in it.
         with Reader(Path(row['bag'])) as bag:
             counts = {c.topic: c.msgcount for c in bag.connections}
             assert counts[END_TOPIC] >= row['points']
             for actuator in ('actuator_1', 'actuator_2'):
-                assert counts[actuator_state_topic(actuator)] > 0.8 * 500 * 14, counts
+                assert counts[actuator_state_topic(actuator)] > 0.8 * 100 * 14, counts
             # The run's plan; the one before it too, latched, from the second run on.
             assert counts[TRAJECTORY_TOPIC] in (1, 2), counts
             assert counts[RUN_TOPIC] > 0.8 * 14 / 0.05, counts

@@ -61,7 +61,8 @@ from flexure_ctrl.core.ploop import (ActuatorController, BacklashTakeUp, LoopLim
 from flexure_ctrl.core.run import LoopStatus, PlanError, RunMessage
 from flexure_ctrl.interface import ACTUATOR_NAMES
 from flexure_ctrl.nodes import common
-from flexure_ctrl.nodes.actuator_support import declare_loop_parameters, diagnostic_values
+from flexure_ctrl.nodes.actuator_support import cycles_per_state, declare_loop_parameters
+from flexure_ctrl.nodes.actuator_support import diagnostic_values
 from flexure_ctrl.nodes.actuator_support import level_of, link_values, LoopThread, status_of
 from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message, stamp_ns_of
 from flexure_ctrl.nodes.run_messages import word_message
@@ -125,6 +126,8 @@ class ActuatorLoop(LifecycleNode):
         self.drive.problem = 'unconfigured: configure opens the bus and commissions the drive'
 
         self._state = JointState(name=[self.actuator], position=[0.0], velocity=[0.0])
+        self._cycles_per_state = cycles_per_state(self.rate_hz, p.state_rate_hz)
+        self._cycles_to_state = 1
         self._status_name = interface.STATUS_PREFIX + self.actuator
         self._hardware_id = f'can node {p.node_id}'
         self.state_publisher = self.create_publisher(
@@ -323,7 +326,12 @@ class ActuatorLoop(LifecycleNode):
             return
         now_ns = time.time_ns()
         if self.drive.cycle(now_ns, time.monotonic()):
-            self._publish_state(self.drive.measured_m, self.drive.commanded_m_s, now_ns)
+            # A publication costs the loop thread more than the rest of its cycle: the
+            # state goes out on every n-th cycle only (state_rate_hz).
+            self._cycles_to_state -= 1
+            if self._cycles_to_state <= 0:
+                self._cycles_to_state = self._cycles_per_state
+                self._publish_state(self.drive.measured_m, self.drive.commanded_m_s, now_ns)
         if self.drive.events:
             self._report()
 

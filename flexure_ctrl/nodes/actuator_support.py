@@ -41,6 +41,8 @@ _RANGED = (
     ('can.port', 29536, 'socketcand server TCP port (socketcand only)', 1, 65535, False),
     ('node_id', 1, 'CANopen node id of the drive', 1, 127, False),
     ('rate_hz', 500, 'loop rate (Hz)', 10, 2000, False),
+    ('state_rate_hz', 100, 'rate (Hz) of the state topic: every n-th cycle is published, '
+     'n = rate_hz / state_rate_hz rounded; at most rate_hz', 10, 2000, False),
     ('gain_per_s', 20.0, 'proportional gain (1/s): m/s of command per m of error; may '
      'change live', 0.0, 200.0, True),
     ('velocity_feedforward', 1.0, 'fraction of the setpoint velocity fed forward; may '
@@ -135,6 +137,7 @@ class LoopParameters:
     can_port: int
     node_id: int
     rate_hz: int
+    state_rate_hz: int
     gain_per_s: float
     velocity_feedforward: float
     max_speed_m_s: float
@@ -240,7 +243,15 @@ def declare_loop_parameters(node: Node, error: Type[Exception]) -> LoopParameter
     if value['actuator'] not in ACTUATOR_NAMES:
         raise error(f'parameter actuator must be one of {", ".join(ACTUATOR_NAMES)}, '
                     f'got {value["actuator"]!r}')
+    if value['state_rate_hz'] > value['rate_hz']:
+        raise error(f'parameter state_rate_hz ({value["state_rate_hz"]} Hz) must not exceed '
+                    f'rate_hz ({value["rate_hz"]} Hz)')
     return LoopParameters(**value)
+
+
+def cycles_per_state(rate_hz: int, state_rate_hz: int) -> int:
+    """Return how many loop cycles go to one state message (at least 1)."""
+    return max(1, round(rate_hz / state_rate_hz))
 
 
 class LoopThread:
