@@ -520,7 +520,7 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
                             'rms_error_x_mm', 'rms_error_y_mm'}
         assert row['points'] > 0.5 * 500 * 14
         # Each run's bag opens in an independent reader, with the tracker's points, both
-X and the run's words in it.
+        # actuators' states (100 Hz, state_rate_hz), the plan and the run's words in it.
         with Reader(Path(row['bag'])) as bag:
             counts = {c.topic: c.msgcount for c in bag.connections}
             assert counts[END_TOPIC] >= row['points']
