@@ -1,8 +1,7 @@
-"""The socketcand-protocol server: python-can socketcand clients and virtual buses share a bus."""
+"""The socketcand-protocol server: socketcand clients and the hub's members share a bus."""
 
 import socket
 import time
-import uuid
 
 import can
 from flexure_ctrl.sim.socketcand_server import format_frame, NonLoopbackHostError, parse_send
@@ -15,7 +14,7 @@ TIMEOUT_S = 5.0
 
 @pytest.fixture
 def server():
-    with SocketcandServer(f'test_socketcand_{uuid.uuid4().hex}') as running:
+    with SocketcandServer() as running:
         yield running
 
 
@@ -28,7 +27,7 @@ def connect(server):
             bus = can.Bus(interface='socketcand', host='127.0.0.1', port=server.port,
                           channel='can0')
         else:
-            bus = can.Bus(interface='virtual', channel=server.virtual_channel)
+            bus = server.hub.bus()
         buses.append(bus)
         return bus
     yield make
@@ -103,7 +102,7 @@ class RawClient:
 
 def test_frames_travel_in_all_directions_without_echo(server, connect):
     client_a, client_b, sniffer = connect(), connect(), connect()
-    in_process = connect('virtual')
+    in_process = connect('hub')
     sent = frame_set(0x100) + [can.Message(arbitration_id=0x1ABCDEF0, is_extended_id=True,
                                            data=b'\x01\x02\x03')]
     for message in sent:
@@ -140,7 +139,7 @@ def test_frames_travel_in_all_directions_without_echo(server, connect):
 
 def test_error_frames_reach_clients(server, connect):
     client = connect()
-    in_process = connect('virtual')
+    in_process = connect('hub')
     # Error class 0x004: controller problems (SocketCAN's CAN_ERR_CRTL).
     in_process.send(can.Message(arbitration_id=0x004, is_error_frame=True,
                                 is_extended_id=True))
@@ -177,7 +176,7 @@ def test_raw_client_sees_socketcand_frame_syntax_and_echo(server, connect):
     try:
         raw.sock.sendall(b'< echo >')
         assert raw.reply() == b'< echo >'
-        in_process = connect('virtual')
+        in_process = connect('hub')
         in_process.send(can.Message(arbitration_id=0x181, is_extended_id=False,
                                     data=bytes.fromhex('3702e8030000')))
         in_process.send(can.Message(arbitration_id=0x12, is_extended_id=False, data=b''))
@@ -208,7 +207,7 @@ def test_shutdown_is_idempotent_disconnects_clients_and_frees_the_port(connect, 
     raw.close()
     with pytest.raises(ConnectionRefusedError):
         socket.create_connection(('127.0.0.1', port), timeout=TIMEOUT_S).close()
-    with SocketcandServer(server.virtual_channel, port=port) as again:
+    with SocketcandServer(port=port) as again:
         assert again.port == port
         bus = can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0')
         bus.shutdown()
@@ -218,14 +217,14 @@ def test_shutdown_is_idempotent_disconnects_clients_and_frees_the_port(connect, 
                                   'example.com'])
 def test_non_loopback_hosts_are_refused(host):
     with pytest.raises(ValueError):
-        SocketcandServer('unused', host=host)
+        SocketcandServer(host=host)
     with pytest.raises(NonLoopbackHostError):
-        SocketcandServer('unused', host=host)
+        SocketcandServer(host=host)
 
 
 @pytest.mark.parametrize('host', ['127.0.0.1', 'localhost', '127.0.0.2', '::1'])
 def test_loopback_hosts_are_accepted(host):
-    SocketcandServer('unused', host=host).shutdown()  # never started: nothing to close
+    SocketcandServer(host=host).shutdown()  # never started: nothing to close
 
 
 def test_format_and_parse_match_socketcand():
@@ -245,7 +244,7 @@ def test_format_and_parse_match_socketcand():
 
 
 def test_client_that_never_finishes_the_handshake_is_dropped():
-    with SocketcandServer(f'test_socketcand_{uuid.uuid4().hex}', io_timeout_s=0.2) as server:
+    with SocketcandServer(io_timeout_s=0.2) as server:
         silent = RawClient(server.port, handshake=False)
         assert silent.reply() == b'< hi >'
         assert silent.closed_by_server()

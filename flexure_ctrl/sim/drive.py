@@ -15,7 +15,10 @@ drives it can be: its own, one in rpm after a maxon EPOS4, one protected by node
 guarding after a Technosoft iPOS, one whose TPDOs have no event timer.
 
 Time is explicit: the owner calls :meth:`SimulatedDrive.tick` with the current time and
-the step, so tests run it deterministically and the simulator runs it in real time.
+the step, so tests run it deterministically and the simulator runs it in real time. On
+the simulator's :class:`~flexure_ctrl.sim.hub.CanHub` the drive takes each frame as it
+is sent (a SYNC is answered at once, as a real drive does), on ``time.monotonic()``,
+which its owner must then tick on too; on any other bus it reads its frames at each tick.
 """
 
 from dataclasses import dataclass
@@ -31,6 +34,7 @@ from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_units import DriveUnits
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.sim.drive_objects import DriveObjects, PDO_EVENT_TIMER, TPDO1_COMMUNICATION
+from flexure_ctrl.sim.hub import HubBus
 import numpy as np
 
 _log = logging.getLogger(__name__)
@@ -318,7 +322,7 @@ class SimulatedDrive:
     Thread safety: :meth:`tick`, :meth:`inject_fault` and :meth:`shutdown` may be called
     from different threads.
 
-    :param bus: bus the drive sends on and receives from.
+    :param bus: bus the drive sends on and receives from (a hub bus: see the module).
     :param node_id: CANopen node id, 1 to 127.
     :param actuator: the physics behind the drive.
     :param vendor: which drive it is (:data:`VENDORS`): its EDS and its units.
@@ -394,6 +398,9 @@ class SimulatedDrive:
         self.mode_of_operation = 0
         self.nmt_state = cia402.NmtState.BOOT_UP
         self._boot()
+        if isinstance(bus, HubBus):
+            # As a real drive: a SYNC is answered when it arrives, not at the next tick.
+            bus.set_handler(self._on_frame)
 
     def _attach_objects(self) -> None:
         attach = self.objects.attach
@@ -503,6 +510,12 @@ class SimulatedDrive:
         self.shutdown()
 
     # Frame handling ---------------------------------------------------------------------
+
+    def _on_frame(self, message: can.Message) -> None:
+        """Take a frame as it is sent on a hub (:mod:`flexure_ctrl.sim.hub`), at monotonic now."""
+        with self._lock:
+            if not self._closed:
+                self._handle(message, time.monotonic())
 
     def _handle(self, message: can.Message, now_s: float) -> None:
         if message.is_extended_id or message.is_error_frame:

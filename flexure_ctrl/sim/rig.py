@@ -14,11 +14,11 @@ import threading
 import time
 from typing import Optional
 
-import can
 from flexure_ctrl.core.design import Design
 from flexure_ctrl.core.tracker import RigTransform
 from flexure_ctrl.sim.config import SimConfigError
 from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
+from flexure_ctrl.sim.hub import CanHub
 from flexure_ctrl.sim.plant import PlantParameters, SimulatedArm
 from flexure_ctrl.sim.socketcand_server import SocketcandServer
 from flexure_ctrl.sim.tracker_server import TrackerServer
@@ -78,9 +78,9 @@ class SimulatedRig:
             link_mass_kg=tuple(plant['link_mass_kg']),
             joint_compliance_rad_per_n_m=tuple(plant['joint_compliance_rad_per_n_m'])))
         network = config['network']
-        self._virtual_channel = f'flexure_sim_{id(self)}'
+        self.hub = CanHub()
         self.can_server = SocketcandServer(
-            self._virtual_channel, channel=network['can_channel'], host=network['host'],
+            self.hub, channel=network['can_channel'], host=network['host'],
             port=int(network['can_port']))
         drives = config['drives']
         screw = LeadScrewParameters(**{key: float(drives[key]) for key in LEAD_SCREW_KEYS})
@@ -88,7 +88,7 @@ class SimulatedRig:
         self.actuators = []
         self.drives = []
         for node_id in drives['node_ids']:
-            bus = can.Bus(interface='virtual', channel=self._virtual_channel)
+            bus = self.hub.bus()
             actuator = LeadScrewActuator(screw, np.random.default_rng(self._rng.integers(2**32)))
             self._buses.append(bus)
             self.actuators.append(actuator)

@@ -7,10 +7,10 @@ SocketCAN, they use python-can's ``socketcand`` client interface::
     can.Bus(interface='socketcand', host='127.0.0.1', port=port, channel='can0')
 
 This server speaks the socketcand ASCII protocol that client expects (raw mode only)
-and bridges every TCP client to its own python-can ``virtual`` bus on one in-process
-channel. So it is a software CAN bus: a frame one client sends reaches every other
-client and every in-process virtual bus on that channel (the simulated drives live
-there), and frames the in-process buses send reach every client. As on SocketCAN with
+and bridges every TCP client to its own member of one in-process
+:class:`~flexure_ctrl.sim.hub.CanHub`. So it is a software CAN bus: a frame one client
+sends reaches every other client and every in-process member of that hub (the simulated
+drives live there), and frames the in-process members send reach every client. As on SocketCAN with
 default socket options, no client receives its own frames back.
 
 Protocol (server ``->`` client, one command per ``< ... >``)::
@@ -42,6 +42,7 @@ from typing import List, Optional, Set
 
 import can
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.sim.hub import CanHub
 from flexure_ctrl.sim.loopback import loopback_address, LoopbackServer
 
 _log = logging.getLogger(__name__)
@@ -236,8 +237,7 @@ class _ClientConnection:
                 elif opened and tokens == ['rawmode']:
                     # Join the bus before saying ok: every frame sent after the client
                     # returns from its constructor must reach it.
-                    self._bus = can.Bus(interface='virtual',
-                                        channel=self._server.virtual_channel)
+                    self._bus = self._server.hub.bus()
                     self._send_text('< ok >')
                     self._writer = threading.Thread(
                         target=self._run_writer, daemon=True,
@@ -305,11 +305,10 @@ class SocketcandServer(LoopbackServer):
     """
     A software CAN bus reachable with python-can's ``socketcand`` interface.
 
-    Each connected client is bridged to its own ``virtual`` bus on ``virtual_channel``;
-    in-process ``can.Bus(interface='virtual', channel=virtual_channel)`` instances share
-    the bus with the clients.
+    Each connected client is bridged to its own member of ``hub``; in-process members
+    (``hub.bus()``) share the bus with the clients.
 
-    :param virtual_channel: channel of the in-process python-can virtual bus.
+    :param hub: the in-process bus; None: a new one (see :attr:`hub`).
     :param channel: bus name clients open (``< open can0 >``).
     :param host: listening address; only loopback addresses are accepted.
     :param port: TCP port; 0 picks a free one (see :attr:`port`).
@@ -322,7 +321,8 @@ class SocketcandServer(LoopbackServer):
 
     _state_error = SocketcandServerStateError
 
-    def __init__(self, virtual_channel: str, channel: str = 'can0', host: str = '127.0.0.1',
+    def __init__(self, hub: Optional[CanHub] = None, channel: str = 'can0',
+                 host: str = '127.0.0.1',
                  port: int = 0, handshake_grace_s: float = 0.25,
                  io_timeout_s: float = 2.0) -> None:
         self._family, self.host = loopback_address(
@@ -331,7 +331,7 @@ class SocketcandServer(LoopbackServer):
             raise ValueError(f'TCP port must be 0 to 65535, got {port}')
         if not channel or any(c.isspace() or c in '<>' for c in channel):
             raise ValueError(f'bus name {channel!r} cannot go into a socketcand command')
-        self.virtual_channel = virtual_channel
+        self.hub = hub if hub is not None else CanHub()
         self.channel = channel
         self.handshake_grace_s = float(handshake_grace_s)
         self.io_timeout_s = float(io_timeout_s)
@@ -353,8 +353,8 @@ class SocketcandServer(LoopbackServer):
                                               name=f'socketcand-accept-{self._port}')
             self._acceptor.start()
             self._state = 'running'
-        _log.info('socketcand server for bus %r on %s:%d (virtual channel %r)',
-                  self.channel, self.host, self._port, self.virtual_channel)
+        _log.info('socketcand server for bus %r on %s:%d', self.channel, self.host,
+                  self._port)
         return self
 
     @property

@@ -1,0 +1,59 @@
+"""The simulated rig's in-process CAN bus: one copy of a frame for every other member."""
+
+import threading
+
+import can
+from flexure_ctrl.sim.hub import CanHub
+import pytest
+
+
+def frame(cob_id: int, data: bytes = b'\x01\x02') -> can.Message:
+    return can.Message(arbitration_id=cob_id, data=bytearray(data), is_extended_id=False)
+
+
+def test_a_frame_reaches_every_other_member_once_and_not_its_sender():
+    hub = CanHub()
+    a, b, c = hub.bus(), hub.bus(), hub.bus()
+    sent = frame(0x201)
+    a.send(sent)
+    sent.data[0] = 0xFF  # the sender reuses its message: what was sent stays sent
+    got_b, got_c = b.recv(0.0), c.recv(0.0)
+    assert bytes(got_b.data) == bytes(got_c.data) == b'\x01\x02'
+    assert got_b is got_c  # one copy for all
+    assert got_b.is_rx and got_b.arbitration_id == 0x201 and got_b.timestamp > 0.0
+    assert a.recv(0.0) is None and b.recv(0.0) is None
+    remote = can.Message(arbitration_id=0x703, is_remote_frame=True, dlc=1,
+                         is_extended_id=False)
+    b.send(remote)
+    got = a.recv(0.0)
+    assert got.is_remote_frame and got.dlc == 1
+
+
+def test_a_handler_takes_frames_at_once_in_the_senders_thread_but_not_from_a_handler():
+    hub = CanHub()
+    drive_1, drive_2, client = hub.bus(), hub.bus(), hub.bus()
+    taken = []
+    drive_1.set_handler(lambda m: taken.append((m.arbitration_id, threading.get_ident())))
+    drive_2.set_handler(lambda m: taken.append(('drive 2', m.arbitration_id)))
+    client.send(frame(0x080))
+    # Taken before send returned, in this thread; nothing queued for a handler.
+    assert taken == [(0x080, threading.get_ident()), ('drive 2', 0x080)]
+    assert drive_1.recv(0.0) is None
+    # Drive to drive: queued, so that no handler runs inside another.
+    taken.clear()
+    drive_2.send(frame(0x182))
+    assert taken == []
+    assert drive_1.recv(0.0).arbitration_id == 0x182
+    assert client.recv(0.0).arbitration_id == 0x182
+
+
+def test_a_member_that_left_gets_nothing_and_cannot_send():
+    hub = CanHub()
+    a, b = hub.bus(), hub.bus()
+    b.shutdown()
+    b.shutdown()  # idempotent
+    a.send(frame(0x201))
+    assert b.recv(0.0) is None
+    with pytest.raises(can.CanOperationError):
+        b.send(frame(0x202))
+    assert a.recv(0.05) is None  # a timed wait that finds nothing
