@@ -15,9 +15,10 @@ process:
 * a CAN sniffer (python-can ``socketcand`` client on the simulated bus) collects every
   RPDO the two loops send, with the time the bus server read it off the loop's socket
   (the frame's timestamp: the moment it reached the "bus"). Their spacing gives each
-  loop's period, the jitter is ``|period - 1/rate|``. Each RPDO is paired with the
-  loop's state message of that cycle, stamped with the instant its velocity was computed
-  for: the setpoint timing is the frame's time minus that instant.
+  loop's period, the jitter is ``|period - 1/rate|``. Each state message of a loop (on
+  every n-th cycle, ``state_rate_hz``), stamped with the instant its cycle's velocity was
+  computed for, is paired with that cycle's RPDO (the loop's first at or after the
+  stamp): the setpoint timing is the frame's time minus that instant.
 * after the run, a node publishes jog command points at 100 Hz on ``/flexure/command``,
   jumping between two end points every 50 ms. The first RPDO after a jump whose target
   velocity moves towards the new point is the CAN command that carries it. Latency = that
@@ -274,16 +275,21 @@ def recorder_subscriptions(node) -> set:
 
 
 def setpoint_timing(frames, states) -> np.ndarray:
-    """Return, per RPDO, its bus time minus the instant its velocity was computed for (s)."""
+    """
+    Return, per published state, the bus time of its cycle's RPDO minus its stamp (s).
+
+    The state goes out on every n-th cycle only (state_rate_hz): its cycle's RPDO is the
+    first one at or after its stamp, the instant the cycle computed its velocity for.
+    """
     delays = []
     for node_id in (1, 2):
-        stamps = np.sort([t for n, t in states if n == node_id])
-        for frame_ns, n, _ in frames:
-            if n != node_id:
-                continue
-            index = np.searchsorted(stamps, frame_ns, side='right') - 1
-            if index >= 0:
-                delays.append((frame_ns - stamps[index]) * 1e-9)
+        frame_ns = np.sort([t for t, n, _ in frames if n == node_id])
+        if frame_ns.size == 0:
+            continue
+        for _, stamp_ns in (s for s in states if s[0] == node_id):
+            index = np.searchsorted(frame_ns, stamp_ns, side='left')
+            if index < frame_ns.size and frame_ns[0] <= stamp_ns:
+                delays.append((frame_ns[index] - stamp_ns) * 1e-9)
     return np.asarray(delays)
 
 
@@ -365,6 +371,8 @@ def main() -> int:
                         help='jog command jumps for the latency figure (default: %(default)s)')
     parser.add_argument('--bag-dir', default='/tmp',
                         help='where the recorder writes (default: %(default)s)')
+    parser.add_argument('--default-only', action='store_true',
+                        help='measure set-up (a) alone, not the pinned set-up (b)')
     arguments = parser.parse_args()
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
@@ -376,7 +384,8 @@ def main() -> int:
     label = (f'(b) loops on core {loop_core} under SCHED_FIFO {LOOP_PRIORITY}, the rest on '
              'the others')
     try:
-        report(label, measure(arguments, pinned=True), arguments.toggles)
+        if not arguments.default_only:
+            report(label, measure(arguments, pinned=True), arguments.toggles)
     except SystemExit as error:
         # On a machine with two cores the simulator shares the one left with every node.
         print(f'--- set-up {label}\nnot measured: {error}')
