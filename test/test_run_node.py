@@ -2,7 +2,7 @@
 
 import signal
 
-from flexure_ctrl.nodes.common import run_node, run_node_to_a_clean_stop
+from flexure_ctrl.nodes.common import run_node
 import pytest
 import rclpy
 from rclpy.node import Node
@@ -19,7 +19,7 @@ class _FailingNode(Node):
 
     def _fail(self) -> None:
         if self.shut_context_first:
-            # What rclpy's SIGINT handler does from under the executor.
+            # What a shutdown from outside does from under the executor.
             rclpy.shutdown()
         raise RuntimeError('Unable to convert call argument 0 to Python object')
 
@@ -39,7 +39,7 @@ class _Factory:
         return self.node
 
 
-def test_a_runtime_error_after_a_signal_shut_the_context_is_a_clean_stop():
+def test_a_runtime_error_after_the_context_was_shut_is_a_clean_stop():
     factory = _Factory(shut_context_first=True)
     run_node(factory, args=[])
     assert factory.node.safe_stops == 1
@@ -82,9 +82,9 @@ def test_a_clean_stop_lets_the_callback_finish_its_write(signal_number):
         return nodes[-1]
 
     handlers = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
-    run_node_to_a_clean_stop(factory, args=[])
+    run_node(factory, args=[])
     node = nodes[0]
-    # rclpy's handling (run_node) raises KeyboardInterrupt after 'first', tearing the write.
+    # rclpy's own handling would raise KeyboardInterrupt after 'first', tearing the write.
     assert node.halves == ['first', 'second']
     assert node.safe_stops == 1
     assert not rclpy.ok()

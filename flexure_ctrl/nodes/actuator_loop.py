@@ -152,8 +152,6 @@ class ActuatorLoop(LifecycleNode):
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/quick_stop', self._on_quick_stop)
         self.add_post_set_parameters_callback(self._on_parameters_set)
-        # The loop thread asks the executor to report through this.
-        self._report_guard = self.create_guard_condition(self.publish_diagnostics)
         self.diagnostics_timer = self.create_timer(1.0, self.publish_diagnostics)
         self.get_logger().info(
             f'{self.actuator}: drive node {p.node_id} on {p.can_interface} {p.can_channel}, '
@@ -449,7 +447,7 @@ class ActuatorLoop(LifecycleNode):
     # ------------------------------------------------------------------ reporting
 
     def _report(self) -> None:
-        """Log the drive's events and ask the executor to publish the status (lock held)."""
+        """Log the drive's events and publish the status at once (lock held)."""
         logger = self.get_logger()
         for level, text in self.drive.events:
             # rclpy ties a severity to each call site: one call per level.
@@ -460,8 +458,10 @@ class ActuatorLoop(LifecycleNode):
             else:
                 logger.info(text)
         self.drive.events.clear()
+        # From whichever thread saw the event, the loop's too: the executor serves no
+        # guard condition, and an event is rare enough for the loop to pay its publication.
         try:
-            self._report_guard.trigger()
+            self.publish_diagnostics()
         except common.RCLError:
             pass  # the context is shutting down; safe_stop() reports the rest
 
@@ -540,7 +540,7 @@ def main(args: Optional[List[str]] = None) -> None:
     # A signal asks for a stop, which comes between callbacks: rclpy's own handling raises
     # KeyboardInterrupt wherever the main thread is, even inside rclpy's own objects
     # (a half-built Task then printed a traceback at every stop).
-    common.run_node_to_a_clean_stop(ActuatorLoop, args)
+    common.run_node(ActuatorLoop, args)
 
 
 if __name__ == '__main__':

@@ -22,7 +22,8 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rcl_interfaces.msg import ParameterType
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.experimental import EventsExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -160,41 +161,6 @@ def declare_design(node: Node, params_files: Optional[Sequence[str]] = None) -> 
     return design_from_parameters(nest_dotted(flat), source)
 
 
-def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None) -> None:
-    """
-    Spin one node until Ctrl-C or SIGTERM, then tear it down cleanly.
-
-    A node that commands hardware defines ``safe_stop()``; it is called in ``finally``,
-    whatever ended the spin, before the node is destroyed.
-
-    A refused start (a params file rcl cannot read, a bad design or parameter value, a
-    drive that never answered) ends the process with one ``[FATAL]`` line naming the file,
-    key and value, and exit status 1: no traceback.
-    """
-    files = _start_rclpy(args)
-    node = None
-    refused = None
-    try:
-        node = node_factory()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (FlexureCtrlError, ParameterException) as error:
-        # A refused configuration or plan, a drive that never answered: said in one line.
-        refused = _refusal(error, files)
-    except RuntimeError:
-        # A signal shuts the context down from under the executor. Mid wait-set it raises
-        # RCLError (ros2/rclpy#398); mid take_message a bare pybind11 RuntimeError
-        # ('Unable to convert call argument'). Either is a clean stop only when the
-        # context is already down; any other RuntimeError is a real fault.
-        if rclpy.ok():
-            raise
-    finally:
-        _tear_down(node)
-    if refused is not None:
-        _exit_refused(refused)
-
-
 class NodeStartError(FlexureCtrlError):
     """A node cannot start: its command line or a params file is refused."""
 
@@ -287,18 +253,30 @@ def _tear_down(node: Optional[Node]) -> None:
 _STOP_POLL_S = 0.1
 
 
-def run_node_to_a_clean_stop(node_factory: Callable[[], Node],
-                             args: Optional[Sequence[str]] = None) -> None:
+def run_node(node_factory: Callable[[], Node], args: Optional[Sequence[str]] = None,
+             executor_class: Callable[[], Executor] = EventsExecutor) -> None:
     """
     Spin one node until Ctrl-C or SIGTERM, letting the callback in progress finish.
 
-    rclpy's own signal handling raises ``KeyboardInterrupt`` wherever the main thread is,
-    which may be halfway through a write (the recorder, in the middle of a record in its
-    chunk: the bag then holds a torn record and reads as garbage from there on). Here the
-    signal only asks for a stop; the executor stops between callbacks, then the node's
-    ``safe_stop()`` runs as with :func:`run_node`. A node whose callbacks may wait long
-    (a transition retrying a drive) defines ``on_stop_requested()``, called from the
-    signal handler, to cut that wait short. The previous handlers are restored.
+    By default the node is spun by rclpy's ``EventsExecutor``: callbacks run as their
+    events come, without the wait set that ``SingleThreadedExecutor`` rebuilds in Python
+    at every wake-up (most of an idle-looking node's CPU at 100 Hz, ros2/rclpy#1389). It
+    serves neither guard conditions nor coroutine callbacks: a node that needs them
+    passes ``executor_class=SingleThreadedExecutor``.
+
+    rclpy's own signal handling would raise ``KeyboardInterrupt`` wherever the main thread
+    is, which may be halfway through a write (the recorder, in the middle of a record in
+    its chunk: the bag then holds a torn record and reads as garbage from there on), and
+    leaves the ``EventsExecutor`` spinning. Here a signal only asks for a stop; the
+    executor stops between callbacks, then the node's ``safe_stop()`` (a node that
+    commands hardware defines one) runs in ``finally``, before the node is destroyed. A
+    node whose callbacks may wait long (a transition retrying a drive) defines
+    ``on_stop_requested()``, called from the signal handler, to cut that wait short. The
+    previous handlers are restored.
+
+    A refused start (a params file rcl cannot read, a bad design or parameter value, a
+    drive that never answered) ends the process with one ``[FATAL]`` line naming the file,
+    key and value, and exit status 1: no traceback.
     """
     stop_requested = threading.Event()
     node = None
@@ -313,18 +291,26 @@ def run_node_to_a_clean_stop(node_factory: Callable[[], Node],
     previous = {number: signal.signal(number, request_stop)
                 for number in (signal.SIGINT, signal.SIGTERM)}
     refused = None
+    executor = None
     try:
         node = node_factory()
-        executor = SingleThreadedExecutor()
+        executor = executor_class()
         executor.add_node(node)
-        while not stop_requested.is_set():
+        while not stop_requested.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=_STOP_POLL_S)
     except ExternalShutdownException:
         pass
     except (FlexureCtrlError, ParameterException) as error:
         refused = _refusal(error, files)
+    except RuntimeError:
+        # Raised from a callback: a clean stop only when the context is already down
+        # (shut from outside); any other RuntimeError is a real fault.
+        if rclpy.ok():
+            raise
     finally:
         try:
+            if executor is not None:
+                executor.shutdown()
             _tear_down(node)
         finally:
             for number, handler in previous.items():

@@ -32,7 +32,7 @@ from flexure_ctrl.interface import INTAKE_SUFFIX, RECORDER, RUN_TOPICS
 from flexure_ctrl.nodes.bag_qos import message_class, qos_to_dict, RECORD_DEPTH
 from flexure_ctrl.nodes.bag_qos import subscription_qos
 from flexure_ctrl.nodes.common import (float_descriptor, leaves_no_half_built_node,
-                                       run_node_to_a_clean_stop)
+                                       run_node)
 from flexure_ctrl.nodes.common import typed_descriptor
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
@@ -210,7 +210,7 @@ def _taken_by_the_timer(*_) -> None:
 
 def main(args=None) -> None:
     # A signal must not cut a write short: the bag would hold a torn record.
-    run_node_to_a_clean_stop(Recorder, args)
+    run_node(Recorder, args)
 
 
 if __name__ == '__main__':

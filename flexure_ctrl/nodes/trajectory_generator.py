@@ -43,6 +43,7 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import ParameterType, SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 from std_srvs.srv import Trigger
@@ -353,7 +354,8 @@ class TrajectoryGenerator(Node):
 
 def main(args=None) -> None:
     """Run the trajectory generator until Ctrl-C or SIGTERM."""
-    common.run_node(TrajectoryGenerator, args)
+    # ~/start is a coroutine (it awaits both loops), which the EventsExecutor cannot serve.
+    common.run_node(TrajectoryGenerator, args, SingleThreadedExecutor)
 
 
 if __name__ == '__main__':
