@@ -23,7 +23,6 @@ CHARACTERISER = 'characteriser'
 ACTUATOR_NAMES: Tuple[str, str] = ('actuator_1', 'actuator_2')
 
 # Topics.
-DEMAND_TOPIC = '/flexure/demand'
 DEMAND_PATH_TOPIC = '/flexure/demand_path'
 COMMAND_PATH_TOPIC = '/flexure/command_path'
 COMMAND_TOPIC = '/flexure/command'
@@ -53,14 +52,15 @@ def tracker_topic(target: str) -> str:
 
 END_TOPIC = tracker_topic(END_TARGET)
 
-# What path correction and the Table 1 report read from a recording.
-CORRECTION_TOPICS: Tuple[str, ...] = (DEMAND_TOPIC, COMMAND_TOPIC, DEMAND_PATH_TOPIC,
+# What path correction and the Table 1 report read from a recording: the run's paths,
+# the run owner's words (when it was armed and ended) and the tracker's end points.
+CORRECTION_TOPICS: Tuple[str, ...] = (DEMAND_PATH_TOPIC, COMMAND_PATH_TOPIC, RUN_TOPIC,
                                       END_TOPIC)
-# The topics of a run, recorded by default: what correction reads, the plan and the run
-# owner's word, the command path, the setpoint stream, the actuators' 500 Hz states and
-# statuses, and the diagnostics (what a user needs to see why a run went wrong).
+# The topics of a run, recorded by default: what correction reads, the plan, the jog
+# command and setpoint streams, the actuators' states and statuses, and the diagnostics
+# (what a user needs to see why a run went wrong).
 RUN_TOPICS: Tuple[str, ...] = CORRECTION_TOPICS + (
-    COMMAND_PATH_TOPIC, TRAJECTORY_TOPIC, RUN_TOPIC, SETPOINTS_TOPIC, DIAGNOSTICS_TOPIC,
+    TRAJECTORY_TOPIC, COMMAND_TOPIC, SETPOINTS_TOPIC, DIAGNOSTICS_TOPIC,
 ) + tuple(topic(actuator) for actuator in ACTUATOR_NAMES
           for topic in (actuator_state_topic, actuator_status_topic))
 

@@ -6,8 +6,11 @@ from flexure_ctrl.cli.main import main
 from flexure_ctrl.core.bag import BagWriter
 from flexure_ctrl.core.correction import corrected_command, path_errors
 from flexure_ctrl.core.errors import CorrectionError
+from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.core.runs import load_runs
 from flexure_ctrl.core.trajectory import SinePath, WaypointPath
+from flexure_ctrl.interface import RUN_STATUS_NAME
+from flexure_ctrl.nodes.run_messages import word_message
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
@@ -33,13 +36,24 @@ def point(t_ns, xy):
     return message
 
 
-def demand_path(path_start_ns):
+def path_message(path_start_ns, points_of_t):
+    """Return a planned path as trajectory_generator publishes it: 100 points a second."""
     message = stamped(Path(), path_start_ns)
-    for t_s in np.linspace(0.0, PERIOD_S, 11):
+    times = np.linspace(0.0, PERIOD_S, int(round(PERIOD_S * 100)) + 1)
+    for t_s, (x_m, y_m) in zip(times, points_of_t(times)):
         pose = stamped(PoseStamped(), round(t_s * 1e9))
-        pose.pose.position.x, pose.pose.position.y = SINE.sample(t_s)[0]
+        pose.pose.position.x, pose.pose.position.y = float(x_m), float(y_m)
         message.poses.append(pose)
     return message
+
+
+def demand_of_t(t_s):
+    return SINE.sample(np.clip(t_s, 0.0, PERIOD_S))[0]
+
+
+def word(state, stamp_ns):
+    """Return the run owner's word on /flexure/run."""
+    return word_message(RUN_STATUS_NAME, RunMessage(state, stamp_ns).to_pairs())
 
 
 def realised(command_xy):
@@ -51,33 +65,36 @@ def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=Tr
                noise_m=0.0, seed=0):
     """Record runs of the sine as the nodes publish them; return the bag folder."""
     rng = np.random.default_rng(seed)
+    command_of_t = command_of_t or demand_of_t
     with BagWriter(folder) as bag:
-        for topic, type_name in (('/flexure/demand', 'geometry_msgs/msg/PointStamped'),
-                                 ('/flexure/command', 'geometry_msgs/msg/PointStamped'),
+        for topic, type_name in (('/flexure/run', 'diagnostic_msgs/msg/DiagnosticStatus'),
                                  ('/flexure/tracker/end', 'geometry_msgs/msg/PointStamped'),
-                                 ('/flexure/demand_path', 'nav_msgs/msg/Path')):
+                                 ('/flexure/demand_path', 'nav_msgs/msg/Path'),
+                                 ('/flexure/command_path', 'nav_msgs/msg/Path')):
             bag.add_topic(topic, type_name)
-        bag.write('/flexure/demand_path', serialize_message(demand_path(0)), T0_NS - 10**9)
+        # What the generator published when it started, and its idle word.
+        bag.write('/flexure/demand_path', serialize_message(path_message(0, demand_of_t)),
+                  T0_NS - 10**9)
+        bag.write('/flexure/run', serialize_message(word(RunState.IDLE, 0)), T0_NS - 10**9)
         for path_start_ns in path_starts_ns:
             run_start_ns = path_start_ns - int(LEAD_IN_S * 1e9)
-            if announce:  # what trajectory_generator publishes when a run starts
-                bag.write('/flexure/demand_path',
-                          serialize_message(demand_path(path_start_ns)), run_start_ns)
-            ticks = np.arange(run_start_ns + 10**7, path_start_ns + (PERIOD_S + LEAD_OUT_S)
-                              * 1e9, 10**7).astype(np.int64)
-            tracker = np.arange(run_start_ns, ticks[-1], 2 * 10**6).astype(np.int64)
-            events = []
-            t_path = (ticks - path_start_ns) / 1e9
-            demand = SINE.sample(np.clip(t_path, 0.0, PERIOD_S))[0]
-            command = demand if command_of_t is None else command_of_t(t_path)
-            for t_ns, p, c in zip(ticks, demand, command):
-                events.append((int(t_ns), '/flexure/demand', point(t_ns, p)))
-                events.append((int(t_ns), '/flexure/command', point(t_ns, c)))
+            run_end_ns = path_start_ns + int((PERIOD_S + LEAD_OUT_S) * 1e9)
+            events = [(run_start_ns, '/flexure/run', word(RunState.ARMING, path_start_ns)),
+                      (path_start_ns - 10**7, '/flexure/run',
+                       word(RunState.RUNNING, path_start_ns)),
+                      (run_end_ns, '/flexure/run', word(RunState.FINISHED, path_start_ns)),
+                      # The owner goes on saying how the run ended.
+                      (run_end_ns + 5 * 10**7, '/flexure/run',
+                       word(RunState.FINISHED, path_start_ns))]
+            if announce:  # what trajectory_generator publishes when a run is armed
+                events += [(run_start_ns, '/flexure/demand_path',
+                            path_message(path_start_ns, demand_of_t)),
+                           (run_start_ns, '/flexure/command_path',
+                            path_message(path_start_ns, command_of_t))]
+            tracker = np.arange(run_start_ns, run_end_ns, 2 * 10**6).astype(np.int64)
             tracker_path_s = (tracker - path_start_ns) / 1e9
             keep = np.ones(tracker.size, bool) if drop is None else ~drop(tracker_path_s)
-            tracked_command = (SINE.sample(np.clip(tracker_path_s, 0.0, PERIOD_S))[0]
-                               if command_of_t is None else command_of_t(tracker_path_s))
-            tracked = realised(tracked_command)[keep]
+            tracked = realised(command_of_t(tracker_path_s))[keep]
             if noise_m:
                 tracked = tracked + rng.normal(0.0, noise_m, tracked.shape)
             for t_ns, xy in zip(tracker[keep], tracked):
@@ -109,9 +126,10 @@ def test_a_bag_without_the_path_start_is_refused_with_the_reason(tmp_path):
         load_runs(late)
     folder = tmp_path / 'no_tracker'
     with BagWriter(folder) as bag:
-        bag.add_topic('/flexure/demand', 'geometry_msgs/msg/PointStamped')
-        bag.write('/flexure/demand', serialize_message(point(T0_NS, (1.0, 0.0))), T0_NS)
-    with pytest.raises(CorrectionError, match='no /flexure/command, /flexure/demand_path, '
+        bag.add_topic('/flexure/demand_path', 'nav_msgs/msg/Path')
+        bag.write('/flexure/demand_path',
+                  serialize_message(path_message(T0_NS, demand_of_t)), T0_NS)
+    with pytest.raises(CorrectionError, match='no /flexure/command_path, /flexure/run, '
                                               '/flexure/tracker/end recorded'):
         load_runs(folder)
 

@@ -27,12 +27,14 @@ from flexure_ctrl.core.characterisation import write_design_yaml
 from flexure_ctrl.core.design import find_config_file, load_design
 from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic, COMMAND_TOPIC,
-                                    DEMAND_TOPIC, END_TOPIC, RUN_TOPIC, SETPOINTS_TOPIC,
+                                    DEMAND_PATH_TOPIC, END_TOPIC, RUN_TOPIC, SETPOINTS_TOPIC,
                                     TRAJECTORY_TOPIC)
+from flexure_ctrl.nodes.common import latched_qos
 from flexure_ctrl.nodes.run_messages import pairs_of
 from geometry_msgs.msg import PointStamped
 from helpers import free_port
 from lifecycle_msgs.srv import GetState
+from nav_msgs.msg import Path as PathMessage
 import numpy as np
 import pytest
 import rclpy
@@ -86,9 +88,10 @@ class Rig:
         self.received = {}
         self._lock = threading.Lock()
         # Only the topics a test needs: the probe's own load competes for the 2 cores.
-        for topic, message_type in topics:
+        for topic, message_type, *qos in topics:
             self.received[topic] = []
-            self.node.create_subscription(message_type, topic, self._keeper(topic), 1000)
+            self.node.create_subscription(message_type, topic, self._keeper(topic),
+                                          qos[0] if qos else 1000)
         # ~1,700 messages/s arrive: spin in a thread of its own, not between checks.
         self._spinner = spin_in_thread(self.executor)
 
@@ -188,13 +191,15 @@ def rig_factory():
 
 def run_the_path_once(rig_factory, **rig_arguments):
     """
-    Start a rig, run the path once; return it and the demand and tracker messages.
+    Start a rig, run the path once; return it, the demand and the tracker messages.
 
-    A run the host ends by itself (see ``ATTEMPTS``) is run again: these tests
-    measure tracking, and the messages returned are those of the run that finished.
+    The demand is the run's demand path (published when it was armed) at 100 Hz over the
+    run, as ``(t_s, xy_m)``: system clock (s) and points ``(N, 2)`` (m). A run the host
+    ends by itself (see ``ATTEMPTS``) is run again: these tests measure tracking, and
+    what is returned is of the run that finished.
     """
-    rig = rig_factory([(END_TOPIC, PointStamped), (DEMAND_TOPIC, PointStamped),
-                       (RUN_TOPIC, DiagnosticStatus)], **rig_arguments)
+    rig = rig_factory([(END_TOPIC, PointStamped), (RUN_TOPIC, DiagnosticStatus),
+                       (DEMAND_PATH_TOPIC, PathMessage, latched_qos())], **rig_arguments)
     rig.wait_for_actuators()
     run_s = LEAD_IN_S + PERIOD_S + 0.5
     first_s = time.time()
@@ -206,28 +211,33 @@ def run_the_path_once(rig_factory, **rig_arguments):
         if word.state is RunState.FINISHED:
             # The tracker's last points are still on their way.
             rig.spin_until(lambda: False, 0.5)
-            demand = [m for t, m in rig.received[DEMAND_TOPIC] if t > started_s]
             tracked = [m for t, m in rig.received[END_TOPIC] if t > started_s]
-            return rig, demand, tracked
+            return rig, demand_of_run(rig, stamp_ns), tracked
         print(f'the run ended by itself ({word.state.value}: {word.reason}); running again')
     raise AssertionError(f'{ATTEMPTS} runs ended by themselves:\n{run_changes(rig, first_s)}\n'
                          + rig.problems())
 
 
+def demand_of_run(rig, stamp_ns):
+    """Return the run's demand ``(t_s, xy_m)`` at 100 Hz, from lead-in to lead-out."""
+    path = next(m for _, m in rig.received[DEMAND_PATH_TOPIC]
+                if stamp_s(m) * 1e9 == pytest.approx(stamp_ns, abs=1))
+    times = np.array([stamp_s(pose) for pose in path.poses])
+    xy = np.array([[pose.pose.position.x, pose.pose.position.y] for pose in path.poses])
+    assert times[0] == 0.0 and times[-1] == pytest.approx(PERIOD_S)
+    path_t = np.arange(-LEAD_IN_S, PERIOD_S + 0.5, 0.01)
+    return stamp_ns * 1e-9 + path_t, np.column_stack(
+        [np.interp(path_t, times, xy[:, 0]), np.interp(path_t, times, xy[:, 1])])
+
+
 def aligned(demand, tracked):
     """Return the tracker points against the demand at the same instants (one clock)."""
-    return align([stamp_s(m) for m in demand], [[m.point.x, m.point.y] for m in demand],
+    return align(demand[0], demand[1],
                  [stamp_s(m) for m in tracked], [[m.point.x, m.point.y] for m in tracked])
 
 
 def test_the_end_point_follows_the_path_within_the_uncorrected_band(rig_factory):
     rig, demand, tracked = run_the_path_once(rig_factory)
-    run_s = LEAD_IN_S + PERIOD_S + 0.5
-    demand_t = np.array([stamp_s(m) for m in demand])
-    # 100 Hz demand. On a loaded 2-core machine an rclpy timer skips late periods
-    # instead of bursting, so the count can fall short while the spacing stays nominal.
-    assert np.median(np.diff(demand_t)) == pytest.approx(0.01, abs=0.001)
-    assert len(demand) > 0.7 * 100 * run_s
     run = aligned(demand, tracked)
     # The 500 Hz tracker stream got through (the simulated tracker thins out when the
     # machine is saturated: it skips samples rather than fall behind).

@@ -8,9 +8,9 @@ from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.kinematics import TwoLinkArm
 from flexure_ctrl.core.run import ACTUATOR_NAMES, LoopStatus, RunMessage, RunState
 from flexure_ctrl.core.trajectory import SinePath
-from flexure_ctrl.interface import (actuator_status_topic, COMMAND_TOPIC, DEMAND_TOPIC,
-                                    RUN_STATUS_NAME, RUN_TOPIC, SETPOINTS_TOPIC,
-                                    TRAJECTORY_TOPIC)
+from flexure_ctrl.interface import (actuator_status_topic, COMMAND_PATH_TOPIC, COMMAND_TOPIC,
+                                    DEMAND_PATH_TOPIC, RUN_STATUS_NAME, RUN_TOPIC,
+                                    SETPOINTS_TOPIC, TRAJECTORY_TOPIC)
 from flexure_ctrl.nodes.common import latched_qos
 from flexure_ctrl.nodes.inverse_solver import InverseSolverNode
 from flexure_ctrl.nodes.run_messages import pairs_of, word_message
@@ -46,11 +46,16 @@ class Harness:
         self.executor.add_node(node)
         return node
 
-    def collect(self, message_type, topic):
+    def collect(self, message_type, topic, qos=50):
         self.received[topic] = []
         self.subscriptions.append(self.probe.create_subscription(
-            message_type, topic, self.received[topic].append, 50))
+            message_type, topic, self.received[topic].append, qos))
         return self.received[topic]
+
+    def run_paths(self):
+        """Collect the demand and command paths; return the lists they arrive in."""
+        return (self.collect(Path, DEMAND_PATH_TOPIC, latched_qos()),
+                self.collect(Path, COMMAND_PATH_TOPIC, latched_qos()))
 
     def spin_until(self, condition, timeout_s=10.0):
         deadline = time.monotonic() + timeout_s
@@ -213,13 +218,18 @@ def test_correction_file_changes_the_command_not_the_demand(harness_factory, tmp
     harness = harness_factory(design_arguments() + [
         '-p', 'path.period_s:=1.0', '-p', 'lead_in_s:=0.0',
         '-p', f'correction_file:={correction}'])
-    demands = harness.collect(PointStamped, DEMAND_TOPIC)
-    commands = harness.collect(PointStamped, COMMAND_TOPIC)
+    demands, commands = harness.run_paths()
     harness.fake_loops()
     harness.start_when_connected(harness.add(TrajectoryGenerator(context=harness.context)))
-    assert harness.spin_until(lambda: len(commands) >= 5 and len(demands) >= 5)
-    assert all((c.point.x, c.point.y) == (1.02, 0.21) for c in commands)
-    assert all(d.point.x == pytest.approx(1.015) for d in demands)
+    # Published again when the run is armed, stamped with its path time zero.
+    assert harness.spin_until(lambda: any(p.header.stamp.sec for p in commands)
+                              and any(p.header.stamp.sec for p in demands))
+    command, demand = commands[-1], demands[-1]
+    assert command.header.stamp == demand.header.stamp
+    assert all((p.pose.position.x, p.pose.position.y) == (1.02, 0.21) for p in command.poses)
+    assert all(p.pose.position.x == pytest.approx(1.015) for p in demand.poses)
+    # rate_hz points a second, over the 1 s path, ends included.
+    assert len(command.poses) == len(demand.poses) == 101
 
 
 def test_correction_file_is_set_between_runs_and_refused_during_one(
@@ -230,11 +240,7 @@ def test_correction_file_is_set_between_runs_and_refused_during_one(
     wrong_length.write_text('t_s,x_m,y_m\n0.0,1.02,0.21\n2.0,1.02,0.21\n')
     harness = harness_factory(design_arguments() + [
         '-p', 'path.period_s:=1.0', '-p', 'lead_in_s:=0.2', '-p', 'lead_out_s:=0.0'])
-    commands = harness.collect(PointStamped, COMMAND_TOPIC)
-    demands = harness.collect(PointStamped, DEMAND_TOPIC)
-    paths = []
-    harness.subscriptions.append(harness.probe.create_subscription(
-        Path, '/flexure/demand_path', paths.append, latched_qos()))
+    paths, commands = harness.run_paths()
     harness.fake_loops()
     generator = harness.add(TrajectoryGenerator(context=harness.context))
 
@@ -249,31 +255,32 @@ def test_correction_file_is_set_between_runs_and_refused_during_one(
     during = set_correction('')
     assert not during.successful and 'in progress' in during.reason
     assert harness.spin_until(lambda: not generator.running, 5.0)
-    assert all((c.point.x, c.point.y) == (1.02, 0.21) for c in commands)
-    # The path published at the start carries path time zero: lead-in after the start.
-    assert harness.spin_until(lambda: any(p.header.stamp.sec for p in paths))
+    # The paths published at the start carry path time zero: lead-in after the start.
+    assert harness.spin_until(lambda: any(p.header.stamp.sec for p in commands))
     start = paths[-1].header.stamp
     path_start_ns = start.sec * 1_000_000_000 + start.nanosec
     assert path_start_ns == generator.supervisor.trajectory_stamp_ns
+    assert all((p.pose.position.x, p.pose.position.y) == (1.02, 0.21)
+               for p in commands[-1].poses)
     sine = SinePath(period_s=1.0)
-    for demand in demands:
-        stamp_ns = demand.header.stamp.sec * 1_000_000_000 + demand.header.stamp.nanosec
-        expected, _ = sine.sample((stamp_ns - path_start_ns) * 1e-9)
-        assert (demand.point.x, demand.point.y) == pytest.approx(tuple(expected), abs=1e-12)
+    for pose in paths[-1].poses:
+        expected, _ = sine.sample(pose.header.stamp.sec + 1e-9 * pose.header.stamp.nanosec)
+        assert (pose.pose.position.x, pose.pose.position.y) == pytest.approx(
+            tuple(expected), abs=1e-12)
     # Between runs it is accepted again: back to command = demand.
     assert set_correction('').successful
-    commands.clear()
-    demands.clear()
     assert harness.spin_until(lambda: not generator.supervisor.not_ready())
     generator.start_run()
-    assert harness.spin_until(lambda: len(commands) >= 5 and len(demands) >= 5)
-    assert [(c.point.x, c.point.y) for c in commands[:5]] == [
-        (d.point.x, d.point.y) for d in demands[:5]]
+    assert harness.spin_until(lambda: paths[-1].header.stamp != start)
+    assert harness.spin_until(lambda: commands[-1].header.stamp == paths[-1].header.stamp)
+    assert [(p.pose.position.x, p.pose.position.y) for p in commands[-1].poses] == [
+        (p.pose.position.x, p.pose.position.y) for p in paths[-1].poses]
 
 
 def test_start_and_stop_services(harness_factory):
     harness = harness_factory(design_arguments() + ['-p', 'lead_in_s:=0.5'])
-    demands = harness.collect(PointStamped, DEMAND_TOPIC)
+    # The command stream is the jog's: a run streams nothing its plan carries.
+    commands = harness.collect(PointStamped, COMMAND_TOPIC)
     loops = harness.fake_loops()
     generator = harness.add(TrajectoryGenerator(context=harness.context))
     start = harness.probe.create_client(Trigger, '/trajectory_generator/start')
@@ -286,7 +293,7 @@ def test_start_and_stop_services(harness_factory):
 
     assert harness.spin_until(lambda: start.service_is_ready() and stop.service_is_ready())
     harness.spin_until(lambda: False, timeout_s=0.2)
-    assert demands == [] and loops.plans == []  # nothing before start
+    assert loops.plans == []  # nothing before start
     response = call(start)
     assert response.success, response.message
     # It answered once both loops held the plan: the run is RUNNING, on the plan's stamp.
@@ -298,7 +305,6 @@ def test_start_and_stop_services(harness_factory):
         list(generator.solver.solve(np.array([1.015, 0.2]))))
     response = call(start)
     assert not response.success and 'already in progress' in response.message
-    assert harness.spin_until(lambda: len(demands) >= 3)
     # The owner speaks every 50 ms while the run lasts.
     first = len(loops.runs)
     harness.spin_until(lambda: False, timeout_s=0.5)
@@ -306,10 +312,8 @@ def test_start_and_stop_services(harness_factory):
     assert len(gaps) >= 6 and gaps.max() < 0.15
     assert call(stop).success
     assert harness.spin_until(lambda: loops.runs[-1][1].state is RunState.STOPPED)
-    count = len(demands)
-    harness.spin_until(lambda: False, timeout_s=0.3)
-    assert len(demands) <= count + 1
     assert not call(stop).success  # no run in progress
+    assert commands == []
 
 
 def test_start_waits_for_both_loops_and_refuses_when_one_is_not_ready(harness_factory):

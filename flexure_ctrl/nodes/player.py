@@ -4,8 +4,8 @@ Player node: replay a bag with its original timing.
 Parameters: ``bag`` (the bag folder or ``.mcap`` file, required), ``rate`` (speed
 factor: 2.0 plays twice as fast), ``start_offset_s`` (skip the first seconds of the
 bag), ``loop``, ``topics`` (the topics to play; empty plays all), ``topic_prefix``
-(prepended to every topic, e.g. ``/replay`` plays ``/flexure/demand`` on
-``/replay/flexure/demand``, so a replay never collides with live topics),
+(prepended to every topic, e.g. ``/replay`` plays ``/flexure/run`` on
+``/replay/flexure/run``, so a replay never collides with live topics),
 ``publish_clock`` (publish ``rosgraph_msgs/Clock`` on ``/clock`` with each message's
 recorded time), ``autostart`` and ``start_delay_s`` (wait before the first message, to
 give subscribers time to discover the publishers).

@@ -20,10 +20,11 @@ On ``/flexure/run`` (``DiagnosticStatus``) the generator speaks every
 ``watchdog_timeout_s`` stops. A problem reported by either loop, or ``~/stop``, ends the
 run on both. The run finishes ``lead_out_s`` after the path's end.
 
-During a run ``/flexure/demand`` and ``/flexure/command`` (``PointStamped``, at
-``rate_hz``) carry the end point due at each instant, and ``/flexure/demand_path`` and
-``/flexure/command_path`` (``nav_msgs/Path``, latched) the planned paths, their header
-stamp path time zero: a recording of the run is aligned with its path by these.
+``/flexure/demand_path`` and ``/flexure/command_path`` (``nav_msgs/Path``, latched,
+``rate_hz`` points a second) carry the planned paths, published again when a run is
+armed with their header stamp its path time zero: a recording of the run is aligned
+with its path by these and by the run's words. Nothing streams during a run that the
+plan already carries.
 """
 
 import math
@@ -39,7 +40,7 @@ from flexure_ctrl.core.trajectory import SinePath, WaypointPath
 from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.common import float_descriptor, typed_descriptor
 from flexure_ctrl.nodes.run_messages import pairs_of, plan_to_message, word_message
-from geometry_msgs.msg import PointStamped, PoseStamped
+from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import ParameterType, SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -49,7 +50,6 @@ from rclpy.task import Future
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-PATH_PREVIEW_RATE_HZ = 50.0
 STATUS_NAME = 'flexure_ctrl/trajectory_generator'
 
 
@@ -66,7 +66,8 @@ class TrajectoryGenerator(Node):
     def __init__(self, **kwargs):
         super().__init__(interface.TRAJECTORY_GENERATOR, **kwargs)
         ranged = (
-            ('rate_hz', 100.0, 'demand publication rate (Hz)', 1.0, 1000.0),
+            ('rate_hz', 100.0, 'points per second of the published demand and command '
+             'paths (Hz)', 1.0, 1000.0),
             ('plan_rate_hz', 100.0, 'points per second of the actuator plan (Hz)', 1.0, 1000.0),
             ('heartbeat_period_s', 0.05, 'how often (s) the run owner speaks on /flexure/run; '
              "well below the loops' watchdog_timeout_s", 0.001, 1.0),
@@ -109,8 +110,6 @@ class TrajectoryGenerator(Node):
         self._waiters = []
         self._autostart = value('autostart')
 
-        self.demand_publisher = self.create_publisher(PointStamped, interface.DEMAND_TOPIC, 10)
-        self.command_publisher = self.create_publisher(PointStamped, interface.COMMAND_TOPIC, 10)
         latched = common.latched_qos()
         self.demand_path_publisher = self.create_publisher(Path, interface.DEMAND_PATH_TOPIC,
                                                            latched)
@@ -129,16 +128,10 @@ class TrajectoryGenerator(Node):
         self.create_service(Trigger, '~/start', self._on_start,
                             callback_group=ReentrantCallbackGroup())
         self.create_service(Trigger, '~/stop', self._on_stop)
-        self._demand_message = PointStamped()
-        self._demand_message.header.frame_id = self.frame_id
-        self._command_message = PointStamped()
-        self._command_message.header.frame_id = self.frame_id
         self._publish_paths(path_start_ns=0)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.heartbeat_timer = self.create_timer(value('heartbeat_period_s'), self._heartbeat)
         self.create_timer(1.0, self._publish_diagnostics)
-        # Runs only during a run: an idle 100 Hz timer still costs a Python process CPU.
-        self.timer = self.create_timer(1.0 / value('rate_hz'), self._tick, autostart=False)
         self.get_logger().info(
             f'path of {self.demand.duration_s:.3f} s planned'
             f'{" with a correction file" if self.command is not self.demand else ""}; '
@@ -200,7 +193,7 @@ class TrajectoryGenerator(Node):
 
     def _path_message(self, trajectory, path_start_ns: int) -> Path:
         """Whole planned path; each pose's stamp is its time since the path starts (s)."""
-        times, points, _ = trajectory.sample_at_rate(PATH_PREVIEW_RATE_HZ)
+        times, points, _ = trajectory.sample_at_rate(self._value('rate_hz'))
         message = Path()
         message.header.frame_id = self.frame_id
         stamp = message.header.stamp
@@ -233,7 +226,6 @@ class TrajectoryGenerator(Node):
         self.trajectory_publisher.publish(self.plan_message)
         self._publish_paths(start_ns)
         self._run_changed()
-        self.timer.reset()
 
     async def _on_start(self, _request, response):
         supervisor = self.supervisor
@@ -300,8 +292,6 @@ class TrajectoryGenerator(Node):
                                    's lead-out, once both loops hold the plan')
         else:
             self.get_logger().info(text)
-        if not supervisor.active:
-            self.timer.cancel()
         self._publish_diagnostics()
         self._check_waiters()
 
@@ -334,22 +324,6 @@ class TrajectoryGenerator(Node):
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)
-
-    def _tick(self) -> None:
-        if not self.supervisor.active:
-            self.timer.cancel()
-            return
-        now_ns = self.get_clock().now().nanoseconds
-        path_time_s = (now_ns - self.supervisor.trajectory_stamp_ns) * 1e-9
-        demand, _ = self.demand.sample(path_time_s)
-        command = demand if self.command is self.demand else self.command.sample(path_time_s)[0]
-        stamp = self._demand_message.header.stamp
-        stamp.sec, stamp.nanosec = divmod(now_ns, NS_PER_S)
-        self._command_message.header.stamp = stamp
-        self._demand_message.point.x, self._demand_message.point.y = map(float, demand)
-        self._command_message.point.x, self._command_message.point.y = map(float, command)
-        self.demand_publisher.publish(self._demand_message)
-        self.command_publisher.publish(self._command_message)
 
 
 def main(args=None) -> None:
