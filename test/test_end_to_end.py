@@ -221,7 +221,7 @@ def run_the_path_once(rig_factory, **rig_arguments):
 def demand_of_run(rig, stamp_ns):
     """Return the run's demand ``(t_s, xy_m)`` at 100 Hz, from lead-in to lead-out."""
     path = next(m for _, m in rig.received[DEMAND_PATH_TOPIC]
-                if stamp_s(m) * 1e9 == pytest.approx(stamp_ns, abs=1))
+                if m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == stamp_ns)
     times = np.array([stamp_s(pose) for pose in path.poses])
     xy = np.array([[pose.pose.position.x, pose.pose.position.y] for pose in path.poses])
     assert times[0] == 0.0 and times[-1] == pytest.approx(PERIOD_S)
