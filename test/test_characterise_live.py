@@ -166,8 +166,10 @@ def test_ctrl_c_saves_the_points_and_leaves_the_actuator_stopped(rig, tmp_path):
 
 def test_full_sweep_recovers_the_simulators_true_joint(rig, tmp_path):
     # The whole stroke, up and down, every 10 mm: each point is measured on its own, so
-    # ten of them test the recovery as nineteen do, in half the time.
-    code, output = characterise(tmp_path, '--step-mm', '10')
+    # ten of them test the recovery as nineteen do, in half the time. A CI host once
+    # stalled every stream here for seconds (4 of a window's 150 tracker points came in
+    # time): a longer wait lets a step outlast that without changing what is measured.
+    code, output = characterise(tmp_path, '--step-mm', '10', '--max-wait-s', '15')
     assert code == 0, output
     summary = json.loads((tmp_path / 'summary.json').read_text())
     measured = load_design(summary['design_file'])

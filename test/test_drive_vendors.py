@@ -208,10 +208,21 @@ def test_a_drive_without_an_event_timer_answers_each_cycle_at_the_loop_period(
             tpdo_times = [t for t, _ in sniffer.of(cia402.TPDO1_BASE + NODE_ID)]
             assert drive.mode is Mode.RUNNING and client.tpdo_count > seen
     # One TPDO per cycle (per SYNC), at the loop's period: the drive's own timer is none.
-    assert len(tpdo_times) == pytest.approx(cycles, abs=2)
-    assert np.median(np.diff(tpdo_times)) == pytest.approx(PERIOD_S, abs=0.0005)
+    # Periods are means over the second: frames are stamped as their threads send them,
+    # so single intervals scatter with this process's thread switches (this thread's
+    # pacing also catches up after a stall), while the count per second does not.
     syncs = [t for t, c, _, _ in sniffer.frames if c == cia402.SYNC_COB_ID]
     assert len(syncs) == pytest.approx(cycles, abs=2)
+    assert len(tpdo_times) == pytest.approx(cycles, abs=2)
+    sync_period_s = (syncs[-1] - syncs[0]) / (len(syncs) - 1)
+    assert sync_period_s == pytest.approx(PERIOD_S, rel=0.1)
+    tpdo_period_s = (tpdo_times[-1] - tpdo_times[0]) / (len(tpdo_times) - 1)
+    assert tpdo_period_s == pytest.approx(sync_period_s, rel=0.05)
+    # Each SYNC is answered within a period as a rule (the drive ticks every ~1 ms).
+    after_sync = np.searchsorted(tpdo_times, syncs)
+    answered = after_sync < len(tpdo_times)
+    delays_s = np.asarray(tpdo_times)[after_sync[answered]] - np.asarray(syncs)[answered]
+    assert np.median(delays_s) < PERIOD_S
 
 
 @pytest.mark.parametrize('vendor', ['guarding'])
