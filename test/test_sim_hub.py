@@ -1,10 +1,18 @@
 """The simulated rig's in-process CAN bus: one copy of a frame for every other member."""
 
 import threading
+import time
 
 import can
+from flexure_ctrl.core import cia402
+from flexure_ctrl.core.cia402 import Sdo
+from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters, SimulatedDrive
 from flexure_ctrl.sim.hub import CanHub
+import numpy as np
 import pytest
+
+NODE = 3
+MASTER = 0x70
 
 
 def frame(cob_id: int, data: bytes = b'\x01\x02') -> can.Message:
@@ -57,3 +65,38 @@ def test_a_member_that_left_gets_nothing_and_cannot_send():
     with pytest.raises(can.CanOperationError):
         b.send(frame(0x202))
     assert a.recv(0.05) is None  # a timed wait that finds nothing
+
+
+def test_a_drive_does_not_call_its_master_silent_while_the_masters_frames_are_pending():
+    hub = CanHub()
+    master = hub.bus()
+    pending = [False]
+    master.set_input_pending(lambda: pending[0])
+    actuator = LeadScrewActuator(LeadScrewParameters(), np.random.default_rng(0))
+    drive = SimulatedDrive(hub.bus(), NODE, actuator, rpdo_timeout_s=0.0)
+    master.send(can.Message(arbitration_id=cia402.SDO_CLIENT_TO_SERVER_BASE + NODE,
+                            is_extended_id=False, data=cia402.encode_sdo(
+                                Sdo('download', 0x1016, 1, (MASTER << 16) | 300, 4))))
+    master.send(can.Message(arbitration_id=cia402.HEARTBEAT_BASE + MASTER,
+                            is_extended_id=False, data=b'\x05'))
+    heard_s = time.monotonic()
+
+    def emcys_after(seconds: float):
+        drive.tick(heard_s + seconds, 1e-3)
+        found = []
+        message = master.recv(0.0)
+        while message is not None:
+            if message.arbitration_id == cia402.EMCY_BASE + NODE:
+                found.append(cia402.decode_emcy(bytes(message.data)).error_code)
+            message = master.recv(0.0)
+        return found
+
+    assert emcys_after(0.2) == []
+    # Past the 0.3 s consumer time, but the master's frames wait at the simulator's door
+    # (its reader is behind): no verdict yet, however long that lasts.
+    pending[0] = True
+    assert emcys_after(0.35) == [] and emcys_after(1.0) == []
+    # Delivered, and still no heartbeat among them: the master is silent.
+    pending[0] = False
+    assert emcys_after(1.01) == [0x8130]
+    drive.shutdown()

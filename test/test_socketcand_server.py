@@ -1,6 +1,7 @@
 """The socketcand-protocol server: socketcand clients and the hub's members share a bus."""
 
 import socket
+import threading
 import time
 
 import can
@@ -251,3 +252,21 @@ def test_client_that_never_finishes_the_handshake_is_dropped():
         silent.close()
         assert wait_for(lambda: server.client_count == 0, TIMEOUT_S,
                         'the silent client to be dropped')
+
+
+def test_a_clients_frames_count_as_pending_until_they_are_on_the_bus(server, connect):
+    # A member that takes frames as they come (a drive) and, here, holds the reader up.
+    gate = threading.Event()
+    taken = []
+    member = connect('hub')
+    member.set_handler(lambda message: (taken.append(message.arbitration_id), gate.wait(10)))
+    client = connect()
+    client.send(can.Message(arbitration_id=0x701, data=b'\x05', is_extended_id=False))
+    wait_for(lambda: taken == [0x701], TIMEOUT_S, 'the first frame taken')
+    assert server.hub.input_pending()  # the reader is still handing it on
+    client.send(can.Message(arbitration_id=0x702, data=b'\x05', is_extended_id=False))
+    time.sleep(0.05)  # let the second frame reach the server's socket (not a readiness wait)
+    assert server.hub.input_pending()
+    gate.set()
+    wait_for(lambda: taken == [0x701, 0x702], TIMEOUT_S, 'the second frame taken')
+    wait_for(lambda: not server.hub.input_pending(), TIMEOUT_S, 'nothing pending')

@@ -315,7 +315,10 @@ class SimulatedDrive:
     guarding) no guard request comes for the life time 0x100C x 0x100D, the drive sends
     EMCY 0x8130 and, in OPERATION ENABLED, acts on 0x6007 (1 fault, 2 disable voltage, 3
     quick stop at 0x6085). Missing RPDOs for
-    ``rpdo_timeout_s`` in OPERATION ENABLED cause a quick stop and EMCY 0x8250. When the
+    ``rpdo_timeout_s`` in OPERATION ENABLED cause a quick stop and EMCY 0x8250. On a hub,
+    none of these verdicts is given while the simulator still holds a client's frames it
+    has not delivered (:meth:`~flexure_ctrl.sim.hub.CanHub.input_pending`): a real drive
+    hears a frame when it is on the wire, not when a loaded host gets round to reading it. When the
     error register returns to zero the drive sends EMCY 0x0000. Every EMCY code also goes
     to the pre-defined error field 0x1003 (newest first; writing 0 to 0x1003:00 clears it).
 
@@ -398,9 +401,14 @@ class SimulatedDrive:
         self.mode_of_operation = 0
         self.nmt_state = cia402.NmtState.BOOT_UP
         self._boot()
+        # Whether the simulator still holds frames for the bus that it has not delivered.
+        self._input_pending: Callable[[], bool] = lambda: False
         if isinstance(bus, HubBus):
             # As a real drive: a SYNC is answered when it arrives, not at the next tick.
             bus.set_handler(self._on_frame)
+            # A real drive hears a frame when it is on the wire: the simulator's own
+            # lag in reading a client (a loaded host) is not the master falling silent.
+            self._input_pending = bus.hub.input_pending
 
     def _attach_objects(self) -> None:
         attach = self.objects.attach
@@ -610,7 +618,7 @@ class SimulatedDrive:
         if guarded_s is None:
             return
         life_time_s = self._life_time_s()
-        if life_time_s <= 0.0 or now_s - guarded_s <= life_time_s:
+        if life_time_s <= 0.0 or now_s - guarded_s <= life_time_s or self._input_pending():
             return
         _log.warning('node %d: no guard request for %.3f s (life time %.3f s)', self.node_id,
                      now_s - guarded_s, life_time_s)
@@ -691,14 +699,16 @@ class SimulatedDrive:
     def _check_rpdo_timeout(self, now_s: float) -> None:
         if (self.state is cia402.DriveState.OPERATION_ENABLED and self.rpdo_timeout_s > 0.0
                 and self._last_rpdo_s is not None
-                and now_s - self._last_rpdo_s > self.rpdo_timeout_s):
+                and now_s - self._last_rpdo_s > self.rpdo_timeout_s
+                and not self._input_pending()):
             _log.warning('node %d: no RPDO for %.3f s: quick stop', self.node_id,
                          now_s - self._last_rpdo_s)
             self._communication_stop(cia402.EMCY_RPDO_TIMEOUT, ABORT_QUICK_STOP)
 
     def _check_consumer_heartbeat(self, now_s: float) -> None:
         heard_s = self._consumer_heard_s
-        if heard_s is None or now_s - heard_s <= self._consumer_time_s:
+        if heard_s is None or now_s - heard_s <= self._consumer_time_s \
+                or self._input_pending():
             return
         _log.warning('node %d: no heartbeat from node %d for %.3f s', self.node_id,
                      self._consumer_id - cia402.HEARTBEAT_BASE, now_s - heard_s)

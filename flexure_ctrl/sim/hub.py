@@ -14,6 +14,13 @@ drive) are queued for :meth:`HubBus.recv` instead, so that a handler never runs 
 another handler and no two handlers' locks are ever held together.
 
 As on SocketCAN with default socket options, no member receives its own frames.
+
+A real drive hears a frame when it is on the wire; the simulator hears a client's frame
+only when its reader thread has read and parsed it, which on a loaded host can be a tenth
+of a second later. A member fed from outside the process says whether it holds input not
+yet handed on (:meth:`HubBus.set_input_pending`), and :meth:`CanHub.input_pending` asks
+them all: a simulated drive does not call its master silent while the master's frames may
+still be waiting at the simulator's own door.
 """
 
 import queue
@@ -24,6 +31,10 @@ from typing import Callable, Optional, Tuple
 import can
 
 Handler = Callable[[can.Message], None]
+
+
+def _nothing_pending() -> bool:
+    return False
 
 
 class CanHub:
@@ -39,6 +50,10 @@ class CanHub:
         with self._lock:
             self._members += (member,)
         return member
+
+    def input_pending(self) -> bool:
+        """Return whether a member holds frames sent to the bus but not yet delivered."""
+        return any(member.input_pending() for member in self._members)
 
     def _leave(self, member: 'HubBus') -> None:
         with self._lock:
@@ -69,11 +84,25 @@ class HubBus(can.BusABC):
         self._hub = hub
         self.queue: 'queue.SimpleQueue[can.Message]' = queue.SimpleQueue()
         self.handler: Optional[Handler] = None
+        self._input_pending: Callable[[], bool] = _nothing_pending
         self._closed = False
 
     def set_handler(self, handler: Optional[Handler]) -> None:
         """Take frames from members without a handler at once, in the sender's thread."""
         self.handler = handler
+
+    def set_input_pending(self, pending: Callable[[], bool]) -> None:
+        """Say how to ask whether this member's source holds frames it has not yet sent."""
+        self._input_pending = pending
+
+    def input_pending(self) -> bool:
+        """Return whether this member's source holds frames it has not yet sent."""
+        return self._input_pending()
+
+    @property
+    def hub(self) -> CanHub:
+        """Return the bus this member belongs to."""
+        return self._hub
 
     def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
         """Hand a copy of ``msg`` to every other member (never blocks)."""

@@ -52,7 +52,7 @@ _TCP_QUICKACK = getattr(socket, 'TCP_QUICKACK', None)  # Linux only
 # Longest well-formed command: '< send 1FFFFFFF 8 ff ff ff ff ff ff ff ff >' is 42 bytes.
 _MAX_COMMAND_BYTES = 256
 _RECV_BYTES = 65536
-# Wake-up period of the accept and writer loops so that shutdown() is prompt.
+# Wake-up period of the accept, reader and writer loops so that shutdown() is prompt.
 _POLL_S = 0.05
 # Frames waiting are joined into one TCP write (fewer system calls) up to this size: the
 # python-can client reads 1024 bytes at a time and logs a warning for every frame cut.
@@ -148,6 +148,7 @@ class _ClientConnection:
         self._sock = sock
         self.peer = peer
         self._buffer = bytearray()
+        self._handling = False  # from reading a chunk until its frames are on the bus
         self._stopping = threading.Event()
         # Set once the client has surely read the handshake's last '< ok >'.
         self._may_forward = threading.Event()
@@ -238,6 +239,7 @@ class _ClientConnection:
                     # Join the bus before saying ok: every frame sent after the client
                     # returns from its constructor must reach it.
                     self._bus = self._server.hub.bus()
+                    self._bus.set_input_pending(self.input_pending)
                     self._send_text('< ok >')
                     self._writer = threading.Thread(
                         target=self._run_writer, daemon=True,
@@ -247,14 +249,29 @@ class _ClientConnection:
                     raise SocketcandProtocolError(
                         f'unexpected handshake command {" ".join(tokens)!r}')
 
+    def input_pending(self) -> bool:
+        """Return whether the client sent frames that the bus has not yet been given."""
+        if self._handling:
+            return True
+        try:
+            readable, _, _ = select.select([self._sock], [], [], 0.0)
+        except (OSError, ValueError):  # closed meanwhile: nothing more will come
+            return False
+        return bool(readable)
+
     def _relay_from_client(self) -> None:
+        # Either the client's bytes are still in the socket (readable) or _handling is set
+        # until they are on the bus: input_pending() never misses a frame in between.
         while not self._stopping.is_set():
+            readable, _, _ = select.select([self._sock], [], [], _POLL_S)
+            if not readable:
+                continue  # a quiet client is fine
+            self._handling = True
             try:
-                commands = self._read_commands()
-            except TimeoutError:
-                continue  # a quiet client is fine; the timeout only bounds sends
-            for tokens in commands:
-                self._handle_raw_command(tokens)
+                for tokens in self._read_commands():
+                    self._handle_raw_command(tokens)
+            finally:
+                self._handling = False
 
     def _handle_raw_command(self, tokens: List[str]) -> None:
         # Any command after raw mode proves the client has read the last '< ok >'.
