@@ -6,20 +6,16 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl.core.design import find_design_file, load_design
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.kinematics import TwoLinkArm
-from flexure_ctrl.core.run import ACTUATOR_NAMES, ActuatorPlan, LoopStatus, RunMessage
-from flexure_ctrl.core.run import RunState
+from flexure_ctrl.core.run import ACTUATOR_NAMES, LoopStatus, RunMessage, RunState
 from flexure_ctrl.core.trajectory import SinePath
 from flexure_ctrl.interface import (actuator_status_topic, COMMAND_PATH_TOPIC, COMMAND_TOPIC,
                                     DEMAND_PATH_TOPIC, RUN_STATUS_NAME, RUN_TOPIC,
                                     SETPOINTS_TOPIC, TRAJECTORY_TOPIC)
 from flexure_ctrl.nodes.common import latched_qos
 from flexure_ctrl.nodes.inverse_solver import InverseSolverNode
-from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message, plan_to_message
-from flexure_ctrl.nodes.run_messages import stamp_ns_of, trajectory_from_cdr
-from flexure_ctrl.nodes.run_messages import TrajectoryDecodeError, word_message
+from flexure_ctrl.nodes.run_messages import pairs_of, word_message
 from flexure_ctrl.nodes.trajectory_generator import TrajectoryGenerator
 from geometry_msgs.msg import PointStamped
-from helpers import wait_for
 from nav_msgs.msg import Path
 import numpy as np
 import pytest
@@ -441,36 +437,3 @@ def test_a_missing_correction_file_is_refused_naming_it(harness_factory, tmp_pat
             RclpyParameter('correction_file', value=str(missing))])
     assert str(raised.value).startswith(f'{missing}: cannot read: ')
     assert '\n' not in str(raised.value)
-
-
-def test_a_plan_decoded_from_its_bytes_in_python_is_the_plan_rclpy_reads(context):
-    # The loops take the plan raw and decode it in Python, so that the GIL is not held
-    # for the whole message: the plan must come out exactly as rclpy's own reading.
-    times = np.arange(300) / 100.0
-    positions = np.column_stack([0.01 * np.sin(times), 0.02 * np.cos(times)])
-    velocities = np.column_stack([0.01 * np.cos(times), -0.02 * np.sin(times)])
-    message = plan_to_message(ActuatorPlan(ACTUATOR_NAMES, times, positions, velocities))
-    message.header.stamp.sec, message.header.stamp.nanosec = 1_800_000_000, 123_456_789
-    node = rclpy.create_node('raw_plan_probe', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    taken = []
-    node.create_subscription(JointTrajectory, '/raw_plan_test', taken.append, latched_qos(),
-                             raw=True)
-    node.create_publisher(JointTrajectory, '/raw_plan_test', latched_qos()).publish(message)
-    try:
-        wait_for(lambda: taken, 10.0, 'the raw plan', spin=executor)
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-    assert isinstance(taken[0], bytes)
-    decoded = trajectory_from_cdr(taken[0])
-    assert stamp_ns_of(decoded.header) == 1_800_000_000_123_456_789
-    plan = plan_from_message(decoded, 0.045)
-    reference = plan_from_message(message, 0.045)
-    assert plan.joint_names == reference.joint_names == tuple(ACTUATOR_NAMES)
-    assert np.array_equal(plan.times_s, reference.times_s)
-    assert np.array_equal(plan.positions_m, positions)
-    assert np.array_equal(plan.velocities_m_s, velocities)
-    with pytest.raises(TrajectoryDecodeError, match='not a readable JointTrajectory'):
-        trajectory_from_cdr(b'\x00\x01\x00\x00\x07')

@@ -64,9 +64,7 @@ from flexure_ctrl.nodes import common
 from flexure_ctrl.nodes.actuator_support import cycles_per_state, declare_loop_parameters
 from flexure_ctrl.nodes.actuator_support import diagnostic_values
 from flexure_ctrl.nodes.actuator_support import level_of, link_values, LoopThread, status_of
-from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message
-from flexure_ctrl.nodes.run_messages import prepare_trajectory_decoder, stamp_ns_of
-from flexure_ctrl.nodes.run_messages import trajectory_from_cdr, TrajectoryDecodeError
+from flexure_ctrl.nodes.run_messages import pairs_of, plan_from_message, stamp_ns_of
 from flexure_ctrl.nodes.run_messages import word_message
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 import rclpy.logging
@@ -143,10 +141,8 @@ class ActuatorLoop(LifecycleNode):
             JointState, interface.SETPOINTS_TOPIC, self._on_setpoints,
             QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                        reliability=ReliabilityPolicy.BEST_EFFORT))
-        # Taken raw and decoded in Python: see run_messages.trajectory_from_cdr.
-        prepare_trajectory_decoder()
         self.create_subscription(JointTrajectory, interface.TRAJECTORY_TOPIC,
-                                 self._on_trajectory, common.latched_qos(), raw=True)
+                                 self._on_trajectory, common.latched_qos())
         self.create_subscription(DiagnosticStatus, interface.RUN_TOPIC, self._on_run, 10)
         for peer in ACTUATOR_NAMES:
             if peer != self.actuator:
@@ -375,15 +371,7 @@ class ActuatorLoop(LifecycleNode):
                 self.drive.events.append((logging.INFO, 'following the jog stream'))
                 self._report()
 
-    def _on_trajectory(self, raw: bytes) -> None:
-        try:
-            message = trajectory_from_cdr(raw)
-        except TrajectoryDecodeError as error:
-            with self._lock:
-                self.controller.problem = f'trajectory refused: {error}'
-                self.drive.events.append((logging.ERROR, self.controller.problem))
-                self._report()
-            return
+    def _on_trajectory(self, message: JointTrajectory) -> None:
         stamp_ns = stamp_ns_of(message.header)
         try:
             plan = plan_from_message(message, self.limits.stroke_limit_m)

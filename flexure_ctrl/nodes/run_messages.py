@@ -7,52 +7,13 @@ owner's and the loops' words (:class:`~flexure_ctrl.core.run.RunMessage`,
 key-value pairs. One place writes and reads each, for every node and the tests.
 """
 
-import functools
-import struct
 from typing import Iterable, List, Tuple
 
 from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from flexure_ctrl.core.run import ActuatorPlan, NS_PER_S, PlanError
 import numpy as np
-from rosbags.serde import SerdeError
-from rosbags.typesys import get_typestore, Stores
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-
-JOINT_TRAJECTORY_TYPE = 'trajectory_msgs/msg/JointTrajectory'
-
-
-class TrajectoryDecodeError(ValueError):
-    """Serialised bytes that are not a JointTrajectory."""
-
-
-@functools.lru_cache(maxsize=1)
-def _typestore():
-    return get_typestore(Stores.ROS2_JAZZY)
-
-
-def prepare_trajectory_decoder() -> None:
-    """Build the decoder of :func:`trajectory_from_cdr` now (0.1-0.2 s), not at the first plan."""
-    _typestore().get_msgdef(JOINT_TRAJECTORY_TYPE)
-
-
-def trajectory_from_cdr(raw: bytes):
-    """
-    Decode a serialised ``JointTrajectory`` (as a ``raw=True`` subscription takes it).
-
-    rclpy turns a message into Python objects in one C call that holds the GIL: for a
-    1,700-point plan, 25 ms on an idle machine and 0.14-0.2 s on a loaded one, during
-    which the actuator loop's heartbeat thread cannot run and a drive's 0.3 s consumer
-    heartbeat trips. Decoded in Python (rosbags' CDR reader) the GIL changes hands every
-    few milliseconds. The result reads as the rclpy message does (``header``,
-    ``joint_names``, ``points[i].positions`` ...), arrays being numpy arrays.
-
-    :raises TrajectoryDecodeError: the bytes are not a JointTrajectory.
-    """
-    try:
-        return _typestore().deserialize_cdr(raw, JOINT_TRAJECTORY_TYPE)
-    except (SerdeError, struct.error, IndexError, ValueError, UnicodeDecodeError) as error:
-        raise TrajectoryDecodeError(f'not a readable JointTrajectory ({error})') from None
 
 
 def stamp_ns_of(header) -> int:
@@ -72,11 +33,10 @@ def plan_to_message(plan: ActuatorPlan) -> JointTrajectory:
     return message
 
 
-def plan_from_message(message, stroke_limit_m: float) -> ActuatorPlan:
+def plan_from_message(message: JointTrajectory, stroke_limit_m: float) -> ActuatorPlan:
     """
     Read and check a plan.
 
-    :param message: a ``JointTrajectory``, as rclpy or :func:`trajectory_from_cdr` gives it.
     :raises PlanError: naming the first bad point (a point without a velocity per joint
         counts as bad).
     """
