@@ -73,7 +73,17 @@ def test_a_drive_does_not_call_its_master_silent_while_the_masters_frames_are_pe
     pending = [False]
     master.set_input_pending(lambda: pending[0])
     actuator = LeadScrewActuator(LeadScrewParameters(), np.random.default_rng(0))
-    drive = SimulatedDrive(hub.bus(), NODE, actuator, rpdo_timeout_s=0.0)
+    drive_bus = hub.bus()
+    drive = SimulatedDrive(drive_bus, NODE, actuator, rpdo_timeout_s=0.0)
+    try:
+        check_the_verdict_waits_for_pending_frames(master, drive, pending)
+    finally:
+        drive.shutdown()
+        drive_bus.shutdown()
+        master.shutdown()
+
+
+def check_the_verdict_waits_for_pending_frames(master, drive, pending) -> None:
     master.send(can.Message(arbitration_id=cia402.SDO_CLIENT_TO_SERVER_BASE + NODE,
                             is_extended_id=False, data=cia402.encode_sdo(
                                 Sdo('download', 0x1016, 1, (MASTER << 16) | 300, 4))))
@@ -99,4 +109,3 @@ def test_a_drive_does_not_call_its_master_silent_while_the_masters_frames_are_pe
     # Delivered, and still no heartbeat among them: the master is silent.
     pending[0] = False
     assert emcys_after(1.01) == [0x8130]
-    drive.shutdown()
