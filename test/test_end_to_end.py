@@ -358,6 +358,9 @@ ENDED = (RunState.FINISHED, RunState.STOPPED, RunState.ABORTED)
 # loop late by a few hundred ms leaves its path tolerance, or misses the owner's word for
 # its watchdog time. Tests about something else run such a run again, this often at most.
 ATTEMPTS = 3
+# What a run ended by such a stall says, in the demo's last line.
+HOST_ABORT = re.compile(r'the run aborted: .*(path tolerance|no word from the run owner|'
+                        r'did not take the trajectory)')
 
 
 def start_run(rig):
@@ -537,14 +540,23 @@ def test_up_refuses_a_correction_file_with_unreachable_points(tmp_path):
 
 
 def test_demo_records_each_run_and_learns_the_path(tmp_path):
-    out = tmp_path / 'demo'
-    result = subprocess.run(
-        # The paper's 14 s path. On a 5 s path the corrected run came out worse than the
-        # original in 2 of 3 tries here, for a reason not yet found (see issue 4's notes).
-        [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--period', '14',
-         '--iterations', '1', '--quiet', '--out', str(out), '--bag-dir', str(tmp_path / 'bags'),
-         '--can-port', str(free_port()), '--tracker-port', str(free_port())],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=400, env=os.environ)
+    for attempt in range(2):
+        out = tmp_path / f'demo_{attempt}'
+        result = subprocess.run(
+            # The paper's 14 s path. On a 5 s path the corrected run came out worse than
+            # the original in 2 of 3 tries here, for a reason not yet found (issue 4's notes).
+            [sys.executable, '-m', 'flexure_ctrl.cli.main', 'demo', '--period', '14',
+             '--iterations', '1', '--quiet', '--out', str(out),
+             '--bag-dir', str(tmp_path / f'bags_{attempt}'),
+             '--can-port', str(free_port()), '--tracker-port', str(free_port())],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=400,
+            env=os.environ)
+        # A stall of this shared host that starves a loop for a few tenths of a second
+        # ends a run as it would on a rig (see ATTEMPTS); the whole demo is then run again,
+        # once: its learning from a starved first run would not be the method's either.
+        if result.returncode == 0 or not HOST_ABORT.search(result.stdout):
+            break
+        print(f'demo attempt {attempt}: {result.stdout.strip().splitlines()[-1]}')
     assert result.returncode == 0, result.stdout[-3000:]
     summary = json.loads((out / 'summary.json').read_text())
     original, adjusted = summary['iterations']
