@@ -504,9 +504,13 @@ def test_rate_two_halves_the_duration_and_offset_and_topics_select(recorded_run,
     expected = [m for m in reader.messages([POINTS]) if m.log_time_ns >= start_ns + 300_000_000]
     assert [data for _, data, _ in replayed] == [m.data for m in expected]
     assert len(expected) < len(published[POINTS])
-    sent_s = (replayed[-1][2] - replayed[0][2]) * 1e-9
-    recorded_s = (expected[-1].log_time_ns - expected[0].log_time_ns) * 1e-9
-    assert sent_s == pytest.approx(recorded_s / 2.0, abs=0.03)
+    # Each message at half its recorded time after one common offset; judged on the
+    # offsets' 10th-90th percentile spread, which one message a stall of this shared host
+    # delayed (seen: the last by 34 ms) does not move. At rate 1 they would drift 0.35 s.
+    offsets_s = sorted((sent - m.log_time_ns / 2.0) * 1e-9
+                       for (_, _, sent), m in zip(replayed, expected))
+    spread_s = offsets_s[9 * len(offsets_s) // 10] - offsets_s[len(offsets_s) // 10]
+    assert spread_s < 0.02, offsets_s
     # /clock carries the recorded time of each message.
     wait_for(lambda: len(clock) >= len(expected), 5.0, '/clock messages')
     assert [c.clock.sec * 1_000_000_000 + c.clock.nanosec for c in clock] == [
