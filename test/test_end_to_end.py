@@ -573,7 +573,7 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
         # A stall of this shared host that starves a loop for a tenth of a second or more
         # ends a run as it would on a rig (see ATTEMPTS), or spoils what the demo learns
         # from it (seen: a backlash of 0.87 mm where the simulator has 0.1, and a floor of
-        # 5 mm RMS in y where it is 0.07, while the hypervisor took 44 % of the CPUs). The
+        # 5 mm RMS in y where it is 0.07, while the hypervisor took 44 % of a CPU). The
         # whole demo is then run again, once.
         gap_s = max((largest_state_gap_s(folder) for folder in bags.iterdir()
                      if (folder / 'metadata.yaml').exists()), default=0.0)
@@ -628,7 +628,7 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
     # the simulated loops' cycles repeat the reading before (the TPDO answering a SYNC
     # comes after the next cycle's poll here), and fresh-clone runs gave 0.148 and 0.169
     # mm for actuator_1; no double was ever seen. actuator_1 reverses once on this path,
-    # and a fresh clone, the hypervisor taking up to 70 % of the two CPUs at times during
+    # and a fresh clone, the hypervisor taking up to 70 % of a CPU at times during
     # that demo, once measured none there (0 taken up, as the demo does when it cannot
     # measure); actuator_2 reverses 3 times.
     assert original['backlash_taken_up_mm'] == [0.0, 0.0]
