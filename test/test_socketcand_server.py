@@ -67,8 +67,12 @@ def marker_first(bus, marker_id, timeout_s=TIMEOUT_S):
 class RawClient:
     """A hand-driven TCP client, to send what python-can never would."""
 
-    def __init__(self, port, handshake=True):
-        self.sock = socket.create_connection(('127.0.0.1', port), timeout=TIMEOUT_S)
+    def __init__(self, port, handshake=True, receive_buffer=None):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        if receive_buffer is not None:  # before connecting: it sets the window offered
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
+        self.sock.settimeout(TIMEOUT_S)
+        self.sock.connect(('127.0.0.1', port))
         self.buffer = b''
         if handshake:
             assert self.reply() == b'< hi >'
@@ -270,3 +274,34 @@ def test_a_clients_frames_count_as_pending_until_they_are_on_the_bus(server, con
     gate.set()
     wait_for(lambda: taken == [0x701, 0x702], TIMEOUT_S, 'the second frame taken')
     wait_for(lambda: not server.hub.input_pending(), TIMEOUT_S, 'nothing pending')
+
+
+def test_a_client_that_stops_reading_is_dropped_and_holds_no_sender_up():
+    with SocketcandServer(io_timeout_s=0.3) as server:
+        stalled = RawClient(server.port, receive_buffer=4096)
+        stalled.sock.sendall(b'< echo >')  # may forward now; then it never reads again
+        listener = can.Bus(interface='socketcand', host='127.0.0.1', port=server.port,
+                           channel='can0')
+        drive = server.hub.bus()
+        try:
+            wait_for(lambda: server.client_count == 2, TIMEOUT_S, 'both clients')
+            frame = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
+            slowest_send_s = 0.0
+            deadline = time.monotonic() + 2 * TIMEOUT_S
+            while server.client_count == 2 and time.monotonic() < deadline:
+                started = time.monotonic()
+                for _ in range(1000):
+                    drive.send(frame)  # the sink writes in this thread: it must not block
+                slowest_send_s = max(slowest_send_s, time.monotonic() - started)
+                time.sleep(0.01)
+                while listener.recv(0.0) is not None:
+                    pass
+            assert server.client_count == 1, 'the client that stopped reading was kept'
+            assert slowest_send_s < 0.25
+            drive.send(can.Message(arbitration_id=0x701, data=b'\x05', is_extended_id=False))
+            got = receive(listener, 1000, timeout_s=1.0)
+            assert got and got[-1].arbitration_id == 0x701
+        finally:
+            drive.shutdown()
+            listener.shutdown()
+            stalled.close()

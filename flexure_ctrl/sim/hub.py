@@ -13,6 +13,11 @@ at once, in the sender's thread. Frames between two members with handlers (drive
 drive) are queued for :meth:`HubBus.recv` instead, so that a handler never runs inside
 another handler and no two handlers' locks are ever held together.
 
+A member that only passes frames on out of the process (a socketcand client's
+connection) takes every frame at once through a sink (:meth:`HubBus.set_sink`), from
+any sender: a sink never sends on the hub, so it cannot run inside itself, and no thread
+has to wake up to pass the frame on.
+
 As on SocketCAN with default socket options, no member receives its own frames.
 
 A real drive hears a frame when it is on the wire; the simulator hears a client's frame
@@ -31,6 +36,7 @@ from typing import Callable, Optional, Tuple
 import can
 
 Handler = Callable[[can.Message], None]
+Sink = Callable[[can.Message], None]
 
 
 def _nothing_pending() -> bool:
@@ -64,6 +70,10 @@ class CanHub:
         for member in self._members:  # a snapshot: members come and go under the lock
             if member is sender:
                 continue
+            sink = member.sink
+            if sink is not None:
+                sink(message)
+                continue
             handler = member.handler
             if handler is None or from_handler:
                 member.queue.put(message)
@@ -84,12 +94,21 @@ class HubBus(can.BusABC):
         self._hub = hub
         self.queue: 'queue.SimpleQueue[can.Message]' = queue.SimpleQueue()
         self.handler: Optional[Handler] = None
+        self.sink: Optional[Sink] = None
         self._input_pending: Callable[[], bool] = _nothing_pending
         self._closed = False
 
     def set_handler(self, handler: Optional[Handler]) -> None:
         """Take frames from members without a handler at once, in the sender's thread."""
         self.handler = handler
+
+    def set_sink(self, sink: Optional[Sink]) -> None:
+        """
+        Take every frame at once, in the sender's thread, instead of queueing it.
+
+        The sink must not send on the hub; it runs under whatever lock the sender holds.
+        """
+        self.sink = sink
 
     def set_input_pending(self, pending: Callable[[], bool]) -> None:
         """Say how to ask whether this member's source holds frames it has not yet sent."""

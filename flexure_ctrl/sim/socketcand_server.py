@@ -38,6 +38,7 @@ import select
 import socket
 import string
 import threading
+import time
 from typing import List, Optional, Set
 
 import can
@@ -52,11 +53,12 @@ _TCP_QUICKACK = getattr(socket, 'TCP_QUICKACK', None)  # Linux only
 # Longest well-formed command: '< send 1FFFFFFF 8 ff ff ff ff ff ff ff ff >' is 42 bytes.
 _MAX_COMMAND_BYTES = 256
 _RECV_BYTES = 65536
-# Wake-up period of the accept, reader and writer loops so that shutdown() is prompt.
+# Wake-up period of the accept and reader loops so that shutdown() is prompt.
 _POLL_S = 0.05
-# Frames waiting are joined into one TCP write (fewer system calls) up to this size: the
-# python-can client reads 1024 bytes at a time and logs a warning for every frame cut.
-_MAX_WRITE_CHARS = 960
+# Kernel send buffer per client: about a second of this rig's busiest traffic (3,000
+# frames/s of ~40 characters). Loopback's default grows to megabytes, which let a client
+# fall many seconds behind the bus before it counted as not reading.
+_SEND_BUFFER_BYTES = 131072
 
 
 class SocketcandServerError(FlexureCtrlError):
@@ -141,7 +143,15 @@ def parse_send(tokens: List[str]) -> can.Message:
 
 
 class _ClientConnection:
-    """One TCP client, bridged to its own virtual bus by a reader and a writer thread."""
+    """
+    One TCP client, bridged to its own member of the hub.
+
+    A reader thread takes the client's commands onto the bus. Frames for the client are
+    written by whichever thread put them on the bus, as they come (the hub's sink),
+    without a thread of their own: a thread woken per frame cost more than the frame.
+    While a reader hands a client's chunk of commands on, frames for every client wait
+    in its buffer and go out in one write per client when the chunk is done.
+    """
 
     def __init__(self, server: 'SocketcandServer', sock: socket.socket, peer: str) -> None:
         self._server = server
@@ -150,10 +160,17 @@ class _ClientConnection:
         self._buffer = bytearray()
         self._handling = False  # from reading a chunk until its frames are on the bus
         self._stopping = threading.Event()
+        # Frames for the client, as text not yet written, and bytes a full socket did
+        # not take; guarded by _out_lock, as are the three fields after them.
+        self._out_lock = threading.Lock()
+        self._out: List[str] = []
+        self._unsent = b''
         # Set once the client has surely read the handshake's last '< ok >'.
-        self._may_forward = threading.Event()
+        self._may_forward = False
+        self._closed = False
+        self._stuck_since_s: Optional[float] = None
+        self._grace: Optional[threading.Timer] = None
         self._bus: Optional[can.BusABC] = None
-        self._writer: Optional[threading.Thread] = None
         self._reader = threading.Thread(target=self._run_reader, daemon=True,
                                         name=f'socketcand-reader-{peer}')
 
@@ -161,9 +178,8 @@ class _ClientConnection:
         self._reader.start()
 
     def stop(self) -> None:
-        """Ask both threads to end: wakes the reader's recv and the writer's send."""
+        """Ask the reader to end: wakes its recv."""
         self._stopping.set()
-        self._may_forward.set()
         try:
             self._sock.shutdown(socket.SHUT_RDWR)
         except OSError:
@@ -175,11 +191,15 @@ class _ClientConnection:
             _log.error('socketcand client %s: reader thread did not end', self.peer)
 
     def _send_text(self, text: str) -> None:
+        """Write a handshake answer (the socket still blocks, with the I/O timeout)."""
         self._sock.sendall(text.encode('ascii'))
 
     def _read_commands(self) -> List[List[str]]:
         """Block for data; return the complete ``< ... >`` commands received, as tokens."""
-        chunk = self._sock.recv(_RECV_BYTES)
+        try:
+            chunk = self._sock.recv(_RECV_BYTES)
+        except BlockingIOError:
+            return []  # select said readable, and nothing was there after all
         if not chunk:
             raise ConnectionResetError('client closed the connection')
         if _TCP_QUICKACK is not None:
@@ -221,13 +241,13 @@ class _ClientConnection:
             self._close()
 
     def _handshake(self) -> None:
-        """``< hi >``, ``< open >``, ``< rawmode >``; leaves the writer running."""
+        """``< hi >``, ``< open >``, ``< rawmode >``; leaves the client on the bus."""
         self._sock.settimeout(self._server.io_timeout_s)
         self._send_text('< hi >')
         opened = False
-        while self._writer is None:
+        while self._bus is None:
             for tokens in self._read_commands():
-                if self._writer is not None:
+                if self._bus is not None:
                     self._handle_raw_command(tokens)
                 elif not opened and tokens[:1] == ['open'] and len(tokens) == 2:
                     if tokens[1] != self._server.channel:
@@ -238,16 +258,20 @@ class _ClientConnection:
                 elif opened and tokens == ['rawmode']:
                     # Join the bus before saying ok: every frame sent after the client
                     # returns from its constructor must reach it.
-                    self._bus = self._server.hub.bus()
-                    self._bus.set_input_pending(self.input_pending)
+                    bus = self._server.hub.bus()
+                    bus.set_input_pending(self.input_pending)
+                    bus.set_sink(self._take)
+                    self._bus = bus
                     self._send_text('< ok >')
-                    self._writer = threading.Thread(
-                        target=self._run_writer, daemon=True,
-                        name=f'socketcand-writer-{self.peer}')
-                    self._writer.start()
+                    self._grace = threading.Timer(self._server.handshake_grace_s,
+                                                  self._start_forwarding)
+                    self._grace.daemon = True
+                    self._grace.start()
                 else:
                     raise SocketcandProtocolError(
                         f'unexpected handshake command {" ".join(tokens)!r}')
+        # From now on frames are written by other threads: a write never blocks them.
+        self._sock.setblocking(False)
 
     def input_pending(self) -> bool:
         """Return whether the client sent frames that the bus has not yet been given."""
@@ -262,59 +286,94 @@ class _ClientConnection:
     def _relay_from_client(self) -> None:
         # Either the client's bytes are still in the socket (readable) or _handling is set
         # until they are on the bus: input_pending() never misses a frame in between.
+        batch = self._server.batch
         while not self._stopping.is_set():
             readable, _, _ = select.select([self._sock], [], [], _POLL_S)
             if not readable:
                 continue  # a quiet client is fine
             self._handling = True
+            batch.clients = set()
             try:
                 for tokens in self._read_commands():
                     self._handle_raw_command(tokens)
             finally:
                 self._handling = False
+                clients, batch.clients = batch.clients, None
+                for client in clients:
+                    client.flush()
 
     def _handle_raw_command(self, tokens: List[str]) -> None:
         # Any command after raw mode proves the client has read the last '< ok >'.
-        self._may_forward.set()
+        self._start_forwarding()
         if tokens[:1] == ['send']:
             self._bus.send(parse_send(tokens))
         elif tokens == ['echo']:
-            self._send_text('< echo >')
+            self._queue_text('< echo >')
         else:
             raise SocketcandProtocolError(f'unsupported command {" ".join(tokens)!r}')
 
-    def _run_writer(self) -> None:
-        self._may_forward.wait(self._server.handshake_grace_s)
-        bus = self._bus
-        try:
-            while not self._stopping.is_set():
-                message = bus.recv(timeout=_POLL_S)
-                if message is None:
-                    continue
-                text = format_frame(message)
-                while len(text) < _MAX_WRITE_CHARS:
-                    message = bus.recv(timeout=0.0)
-                    if message is None:
-                        break
-                    text += format_frame(message)
-                self._send_text(text)
-        except TimeoutError:
-            _log.warning('socketcand client %s dropped: not reading for %.1f s',
-                         self.peer, self._server.io_timeout_s)
-        except OSError as error:
-            if not self._stopping.is_set():
-                _log.info('socketcand client %s: send failed: %s', self.peer, error)
-        finally:
-            self.stop()  # a dead writer must take the reader (and the client) down too
+    def _start_forwarding(self) -> None:
+        with self._out_lock:
+            if self._may_forward:
+                return
+            self._may_forward = True
+        self.flush()
+
+    def _take(self, message: can.Message) -> None:
+        """Take a frame for this client, in the sender's thread (the hub's sink)."""
+        text = format_frame(message)
+        if text:
+            self._queue_text(text)
+
+    def _queue_text(self, text: str) -> None:
+        with self._out_lock:
+            self._out.append(text)
+        clients = getattr(self._server.batch, 'clients', None)
+        if clients is None:
+            self.flush()
+        else:
+            clients.add(self)  # written when the reader's chunk is on the bus
+
+    def flush(self) -> None:
+        """Write what waits for the client, without blocking; drop one not reading."""
+        with self._out_lock:
+            if not self._may_forward or self._closed or not (self._out or self._unsent):
+                return
+            data = self._unsent + ''.join(self._out).encode('ascii')
+            self._out.clear()
+            try:
+                sent = self._sock.send(data)
+            except BlockingIOError:
+                sent = 0
+            except OSError as error:
+                if not self._stopping.is_set():
+                    _log.info('socketcand client %s: send failed: %s', self.peer, error)
+                self._unsent = b''
+                self.stop()
+                return
+            self._unsent = data[sent:]
+            if not self._unsent:
+                self._stuck_since_s = None
+                return
+            now_s = time.monotonic()
+            if self._stuck_since_s is None:
+                self._stuck_since_s = now_s
+            elif now_s - self._stuck_since_s > self._server.io_timeout_s:
+                _log.warning('socketcand client %s dropped: not reading for %.1f s',
+                             self.peer, self._server.io_timeout_s)
+                self._unsent = b''
+                self.stop()
 
     def _close(self) -> None:
-        """Run by the reader when it ends: stop the writer, release bus and socket."""
+        """Run by the reader when it ends: release the bus and the socket."""
         self.stop()
-        if self._writer is not None:
-            self._writer.join()
+        if self._grace is not None:
+            self._grace.cancel()
         if self._bus is not None:
             self._bus.shutdown()
-        self._sock.close()
+        with self._out_lock:
+            self._closed = True
+            self._sock.close()
         self._server._forget(self)
 
 
@@ -357,6 +416,9 @@ class SocketcandServer(LoopbackServer):
         self._listener: Optional[socket.socket] = None
         self._acceptor: Optional[threading.Thread] = None
         self._clients: Set[_ClientConnection] = set()
+        # Per thread: the clients a reader's chunk of commands has written frames for
+        # (``clients``; None when no chunk is being handed on).
+        self.batch = threading.local()
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._state = 'new'
@@ -411,6 +473,7 @@ class SocketcandServer(LoopbackServer):
                 _log.warning('socketcand server: accept failed: %s', error)
                 continue
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SEND_BUFFER_BYTES)
             client = _ClientConnection(self, sock, f'{address[0]}:{address[1]}')
             with self._lock:
                 if self._stopping.is_set():
