@@ -9,7 +9,7 @@ from flexure_ctrl.core.drive_units import check_stated, DriveUnits, DriveUnitsEr
 from flexure_ctrl.core.drive_units import increments_per_unit, normalise, unit_text
 from flexure_ctrl.core.master_beat import guard_request, heartbeat_frame, MasterBeat
 from flexure_ctrl.core.master_beat import MasterBeatError, SendLock
-from flexure_ctrl.sim.socketcand_server import parse_send, SocketcandServer
+from flexure_ctrl.sim.socketcand_server import parse_send
 import pytest
 
 
@@ -98,29 +98,3 @@ def test_a_guard_request_is_a_remote_frame_the_simulated_bus_passes_on():
     # python-can's socketcand client writes it as a send with a length and no bytes.
     passed = parse_send(['send', '707', '1'])
     assert passed.is_remote_frame and passed.dlc == 1 and passed.arbitration_id == 0x707
-
-
-def test_send_all_puts_a_cycles_frames_into_one_socketcand_write_in_order():
-    rpdo = can.Message(arbitration_id=0x201, is_extended_id=False, data=b'\x0f\x00\x10')
-    sync = can.Message(arbitration_id=0x080, is_extended_id=False, data=b'')
-    with SocketcandServer() as server:
-        listener = server.hub.bus()
-        client = can.Bus(interface='socketcand', host='127.0.0.1', port=server.port,
-                         channel='can0')
-        writes = []
-        write = client._tcp_send
-        client._tcp_send = lambda text: (writes.append(text), write(text))
-        try:
-            SendLock(client).send_all((rpdo, sync))
-            got = [listener.recv(5.0), listener.recv(5.0)]
-        finally:
-            client.shutdown()
-            listener.shutdown()
-    assert len(writes) == 1  # one write: the server wakes once for the cycle
-    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x201, b'\x0f\x00\x10'),
-                                                                (0x080, b'')]
-    # Any other bus takes them one by one, in the same order.
-    with can.Bus(interface='virtual', channel='all') as sender, \
-            can.Bus(interface='virtual', channel='all') as receiver:
-        SendLock(sender).send_all((rpdo, sync))
-        assert [receiver.recv(1.0).arbitration_id for _ in range(2)] == [0x201, 0x080]

@@ -126,8 +126,6 @@ class DriveClient:
                                else tpdo_timeout_s)
         self._clock = clock
         self._owns_bus = owns_bus
-        # Both frames of a cycle in one call, where the bus offers it (SendLock).
-        self._send_all = getattr(bus, 'send_all', None)
         self._sync = can.Message(arbitration_id=sync_cob_id, is_extended_id=False,
                                  data=b'') if sync else None
         # Why the latest TPDO could not be read (e.g. the drive maps other objects).
@@ -249,12 +247,8 @@ class DriveClient:
     def _send_rpdo(self, controlword: int, velocity: int) -> None:
         """Send RPDO1 (controlword, velocity in drive units), then a SYNC in sync mode."""
         self._rpdo.data = cia402.encode_pdo(controlword, velocity)
-        if self._sync is None:
-            self.bus.send(self._rpdo)
-        elif self._send_all is not None:
-            self._send_all((self._rpdo, self._sync))
-        else:
-            self.bus.send(self._rpdo)
+        self.bus.send(self._rpdo)
+        if self._sync is not None:
             self.bus.send(self._sync)
         self.controlword = controlword
         self._disable_sent = controlword == Controlword.DISABLE_VOLTAGE and velocity == 0

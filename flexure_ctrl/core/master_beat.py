@@ -14,10 +14,9 @@ No rclpy here; times in s of a monotonic clock.
 
 import threading
 import time
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional
 
 import can
-from can.interfaces.socketcand import socketcand
 from flexure_ctrl.core import cia402
 from flexure_ctrl.core.cia402 import NmtState
 from flexure_ctrl.core.errors import FlexureCtrlError
@@ -42,23 +41,6 @@ class SendLock:
         """Send one frame, after any other thread's frame in progress."""
         with self._lock:
             self._bus.send(message, timeout)
-
-    def send_all(self, messages: Sequence[can.Message]) -> None:
-        """
-        Send frames back to back, after any other thread's frame in progress.
-
-        Over python-can's ``socketcand`` client they go out in one TCP write: the server
-        then wakes once for them, not once per frame. Other buses take one per call.
-        """
-        with self._lock:
-            bus = self._bus
-            if isinstance(bus, socketcand.SocketCanDaemonBus):
-                # The client's own formatting and write, done once for all the frames.
-                bus._tcp_send(''.join(socketcand.convert_can_message_to_ascii_message(message)
-                                      for message in messages))
-            else:
-                for message in messages:
-                    bus.send(message)
 
     def __getattr__(self, name: str):
         """Pass everything else (recv, shutdown, ...) to the bus."""
