@@ -442,9 +442,29 @@ def assert_both_move_then_stop_by(rig, event_s, allowance_s, hold_s=1.0):
             v == 0.0 for t, v in states if t > zero_s), actuator
 
 
-def test_a_hung_run_owner_stops_both_actuators_within_the_watchdog_time(rig_factory):
+def test_the_stop_service_a_hung_run_owner_and_a_drive_fault_each_end_a_run_on_both(
+        rig_factory):
+    # One rig for the three ways a run in progress ends (a bring-up costs about 10 s);
+    # each starts its own run, the fault last, as it leaves a drive faulted.
     rig = rig_factory(STATE_TOPICS + [(RUN_TOPIC, DiagnosticStatus)])
     rig.wait_for_actuators()
+    the_stop_service_leaves_both_actuators_holding(rig)
+    a_hung_run_owner_stops_both_actuators_within_the_watchdog_time(rig)
+    a_fault_on_one_drive_stops_both(rig)
+    assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
+
+
+def the_stop_service_leaves_both_actuators_holding(rig):
+    start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
+    assert rig.call('/trajectory_generator/stop').success
+    assert rig.spin_until(lambda: run_words(rig)[-1][1].state is RunState.STOPPED, 5.0)
+    # From the owner's word STOPPED (as this probe heard it; the loops hear it alike): the
+    # ramp to zero, and 0.1 s for scheduling on this shared machine.
+    stopped_s = min(t for t, w in run_words(rig) if w.state is RunState.STOPPED)
+    assert_both_move_then_stop_by(rig, stopped_s, 0.1 + MAX_SPEED_M_S / WATCHDOG_DECEL_M_S2)
+
+
+def a_hung_run_owner_stops_both_actuators_within_the_watchdog_time(rig):
     start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
     owner_pid = rig.pid_of('trajectory_generator')
     os.kill(owner_pid, signal.SIGSTOP)
@@ -464,12 +484,9 @@ def test_a_hung_run_owner_stops_both_actuators_within_the_watchdog_time(rig_fact
     rig.spin_until(lambda: False, 1.0)
     for actuator in ('actuator_1', 'actuator_2'):
         assert all(v == 0.0 for _, v in states_after(rig, actuator, resumed_s))
-    assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
 
 
-def test_a_fault_on_one_drive_stops_both(rig_factory):
-    rig = rig_factory(STATE_TOPICS + [(RUN_TOPIC, DiagnosticStatus)])
-    rig.wait_for_actuators()
+def a_fault_on_one_drive_stops_both(rig):
     start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
     # Drive 2 reports a fault (an EMCY on its COB-ID, as the drive would send it).
     with can.Bus(interface='socketcand', channel='can0', host='127.0.0.1',
@@ -483,20 +500,6 @@ def test_a_fault_on_one_drive_stops_both(rig_factory):
     ended = run_words(rig)[-1][1]
     assert ended.state is RunState.ABORTED, ended
     assert ended.reason.startswith('actuator_2: DriveFaultError') and '0x7300' in ended.reason
-    assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
-
-
-def test_the_stop_service_leaves_both_actuators_holding(rig_factory):
-    rig = rig_factory(STATE_TOPICS + [(RUN_TOPIC, DiagnosticStatus)])
-    rig.wait_for_actuators()
-    start_and_run_for(rig, LEAD_IN_S + PERIOD_S / 4.0)
-    assert rig.call('/trajectory_generator/stop').success
-    assert rig.spin_until(lambda: run_words(rig)[-1][1].state is RunState.STOPPED, 5.0)
-    # From the owner's word STOPPED (as this probe heard it; the loops hear it alike): the
-    # ramp to zero, and 0.1 s for scheduling on this shared machine.
-    stopped_s = min(t for t, w in run_words(rig) if w.state is RunState.STOPPED)
-    assert_both_move_then_stop_by(rig, stopped_s, 0.1 + MAX_SPEED_M_S / WATCHDOG_DECEL_M_S2)
-    assert rig.interrupt() == 0, '\n'.join(rig.lines[-40:])
 
 
 def test_autostart_starts_only_once_both_loops_run(rig_factory):
