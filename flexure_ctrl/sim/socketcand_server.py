@@ -160,11 +160,11 @@ class _ClientConnection:
         self._buffer = bytearray()
         self._handling = False  # from reading a chunk until its frames are on the bus
         self._stopping = threading.Event()
-        # Frames for the client, as text not yet written, and bytes a full socket did
-        # not take; guarded by _out_lock, as are the three fields after them.
+        # Bytes for the client not yet written (a full socket keeps them here, and a
+        # write takes them from the front); guarded by _out_lock, as are the three fields
+        # after it.
         self._out_lock = threading.Lock()
-        self._out: List[str] = []
-        self._unsent = b''
+        self._unsent = bytearray()
         # Set once the client has surely read the handshake's last '< ok >'.
         self._may_forward = False
         self._closed = False
@@ -327,7 +327,7 @@ class _ClientConnection:
 
     def _queue_text(self, text: str) -> None:
         with self._out_lock:
-            self._out.append(text)
+            self._unsent += text.encode('ascii')
         clients = getattr(self._server.batch, 'clients', None)
         if clients is None:
             self.flush()
@@ -337,21 +337,19 @@ class _ClientConnection:
     def flush(self) -> None:
         """Write what waits for the client, without blocking; drop one not reading."""
         with self._out_lock:
-            if not self._may_forward or self._closed or not (self._out or self._unsent):
+            if not self._may_forward or self._closed or not self._unsent:
                 return
-            data = self._unsent + ''.join(self._out).encode('ascii')
-            self._out.clear()
             try:
-                sent = self._sock.send(data)
+                sent = self._sock.send(self._unsent)
             except BlockingIOError:
                 sent = 0
             except OSError as error:
                 if not self._stopping.is_set():
                     _log.info('socketcand client %s: send failed: %s', self.peer, error)
-                self._unsent = b''
+                self._unsent.clear()
                 self.stop()
                 return
-            self._unsent = data[sent:]
+            del self._unsent[:sent]
             if not self._unsent:
                 self._stuck_since_s = None
                 return
@@ -361,7 +359,7 @@ class _ClientConnection:
             elif now_s - self._stuck_since_s > self._server.io_timeout_s:
                 _log.warning('socketcand client %s dropped: not reading for %.1f s',
                              self.peer, self._server.io_timeout_s)
-                self._unsent = b''
+                self._unsent.clear()
                 self.stop()
 
     def _close(self) -> None:
