@@ -354,8 +354,8 @@ class _ClientConnection:
                 self._stuck_since_s = None
                 return
             now_s = time.monotonic()
-            if self._stuck_since_s is None:
-                self._stuck_since_s = now_s
+            if sent or self._stuck_since_s is None:
+                self._stuck_since_s = now_s  # it reads, if slowly: the wait starts now
             elif now_s - self._stuck_since_s > self._server.io_timeout_s:
                 _log.warning('socketcand client %s dropped: not reading for %.1f s',
                              self.peer, self._server.io_timeout_s)
