@@ -67,6 +67,42 @@ def test_the_sampler_holds_the_first_point_before_and_the_last_after():
         assert velocity == pytest.approx(0.01, abs=1e-15)
 
 
+@pytest.mark.parametrize('way', [1.0, -1.0])
+def test_the_sampler_approaches_the_first_point_the_way_the_joint_first_goes(way):
+    times = np.linspace(0.0, 2.0, 21)
+    positions = 0.01 + way * 0.002 * times ** 2  # from rest, the way ``way``
+    sampler = JointSampler(times, positions, way * 0.004 * times, approach_m=3e-4,
+                           approach_s=1.0)
+    # Before the approach it holds 0.3 mm behind the first point, at rest ...
+    assert sampler.sample(-5.0) == (pytest.approx(0.01 - way * 3e-4, abs=1e-15), 0.0)
+    assert sampler.sample(-1.0) == (pytest.approx(0.01 - way * 3e-4, abs=1e-15), 0.0)
+    # ... then comes to it smoothly, moving the way of the path, and arrives at rest.
+    before = np.linspace(-1.0, 0.0, 2001)
+    sampled = np.array([sampler.sample(t) for t in before])
+    assert np.all(way * np.diff(sampled[:, 0]) > 0.0)
+    assert sampled[-1, 0] == pytest.approx(0.01, abs=1e-15) and sampled[-1, 1] == 0.0
+    assert sampler.sample(-0.5) == (pytest.approx(0.01 - way * 1.5e-4, abs=1e-15),
+                                    pytest.approx(way * 4.5e-4, abs=1e-15))
+    assert np.max(np.abs(np.gradient(sampled[:, 0], before) - sampled[:, 1])) < 1e-6
+    # The approach is the first stroke's start; the path itself is unchanged.
+    assert sampler.strokes(5e-5) == ((-1.0,), (int(way),))
+    assert sampler.sample(1.0) == JointSampler(times, positions, way * 0.004 * times).sample(1.0)
+
+
+def test_the_approach_stays_within_the_stroke_and_a_still_joint_has_none():
+    times = np.linspace(0.0, 1.0, 11)
+    # 0.1 mm above the lower stroke limit, moving up: the approach is 0.1 mm long.
+    up = JointSampler(times, -0.0099 + 0.001 * times, np.full(11, 0.001), 3e-4, 1.0, 0.01)
+    assert up.sample(-2.0)[0] == pytest.approx(-0.01, abs=1e-15)
+    # At the limit already: no approach, the first point is held.
+    at = JointSampler(times, -0.01 + 0.001 * times, np.full(11, 0.001), 3e-4, 1.0, 0.01)
+    assert at.sample(-2.0) == (-0.01, 0.0) and at.strokes(5e-5)[0] == (0.0,)
+    still = JointSampler(times, np.full(11, 0.002), np.zeros(11), 3e-4, 1.0)
+    assert still.sample(-0.5) == (0.002, 0.0)
+    with pytest.raises(ValueError, match='approach'):
+        JointSampler(times, np.zeros(11), np.zeros(11), -1e-4, 1.0)
+
+
 def test_a_path_with_unreachable_points_is_refused_naming_the_first(solver):
     # 1 s of the path far outside the workspace, as a bad correction file would have.
     times = np.arange(1401) / 100.0

@@ -71,7 +71,10 @@ class PathLearning:
                     self.messages.append(f'{name}: no loop states recorded: its backlash '
                                          'is not measured')
                     continue
-                estimate = self.backlash.add_run(name, *cycles[name])
+                # The path's reversals only: the lead-in's is the loop's own step and
+                # approach, whose take-up pulse the fit takes for a smaller band.
+                on_path = cycles[name][0] >= 0.0
+                estimate = self.backlash.add_run(name, *(a[on_path] for a in cycles[name]))
                 if estimate is None:
                     self.messages.append(f'{name}: no clean reversal: backlash not measured')
                     continue

@@ -27,7 +27,8 @@ import math
 from typing import Optional, Tuple
 
 from flexure_ctrl.core.errors import FlexureCtrlError
-from flexure_ctrl.core.run import Following, JointSampler, RunMessage, RunState
+from flexure_ctrl.core.run import (Following, JointSampler, MIN_STROKE_M, RunMessage,
+                                   RunState)
 
 _NS_PER_S = 1_000_000_000
 
@@ -246,7 +247,7 @@ class BacklashTakeUp:
                  '_remaining_m')
 
     def __init__(self, backlash_m: float, take_up_s: float = 0.02,
-                 push_speed_m_s: float = 2e-3, min_stroke_m: float = 5e-5) -> None:
+                 push_speed_m_s: float = 2e-3, min_stroke_m: float = MIN_STROKE_M) -> None:
         _require(math.isfinite(backlash_m) and backlash_m >= 0.0,
                  f'backlash_m must be finite and >= 0, got {backlash_m!r}')
         _require(math.isfinite(take_up_s) and take_up_s > 0.0,

@@ -7,8 +7,8 @@ point's time from path time zero) and checks it: one unreachable point, one poin
 the stroke, a non-finite value, a time that does not increase or an unknown joint name
 refuses it whole, with a :class:`PlanError` naming the first bad point. Each actuator
 loop samples its own joint of the plan by its clock through a :class:`JointSampler`
-(cubic Hermite between points, the first point held before path time zero and the last
-after the end).
+(cubic Hermite between points; before path time zero the first point, reached along the
+joint's first stroke; after the end the last point).
 
 The run itself is one thing, owned by one process (``trajectory_generator``). Its
 :class:`RunSupervisor` starts a run only when both loops are running with their drives
@@ -32,6 +32,14 @@ from flexure_ctrl.interface import ACTUATOR_NAMES
 import numpy as np
 
 NS_PER_S = 1_000_000_000
+# Shortest stroke of a plan (m) that counts as a way of its own: above the wiggles a
+# learned command has about its turning points.
+MIN_STROKE_M = 5e-5
+# A loop's approach to a run's first point (:class:`JointSampler`): longer than a lead
+# screw's backlash, and slow enough that a lagging drive neither overshoots the point nor
+# is still short of it at path time zero.
+DEFAULT_APPROACH_M = 3.5e-4
+DEFAULT_APPROACH_S = 1.2
 
 
 class PlanError(FlexureCtrlError, ValueError):
@@ -108,13 +116,19 @@ class ActuatorPlan:
         """Time of the last point from path time zero (s)."""
         return float(self.times_s[-1])
 
-    def sampler(self, joint: str) -> 'JointSampler':
-        """Sampler of one joint's column; :raises KeyError: for a joint not in the plan."""
+    def sampler(self, joint: str, approach_m: float = 0.0, approach_s: float = 0.0,
+                stroke_limit_m: float = math.inf) -> 'JointSampler':
+        """
+        Sampler of one joint's column, with its approach (:class:`JointSampler`).
+
+        :raises KeyError: for a joint not in the plan.
+        """
         if joint not in self.joint_names:
             raise KeyError(f'the plan has no joint {joint!r}')
         column = self.joint_names.index(joint)
         return JointSampler(self.times_s, self.positions_m[:, column],
-                            self.velocities_m_s[:, column])
+                            self.velocities_m_s[:, column], approach_m, approach_s,
+                            stroke_limit_m)
 
 
 def _first(mask: np.ndarray) -> Optional[int]:
@@ -161,25 +175,55 @@ class JointSampler:
     """
     One joint of a plan, sampled by the clock: cubic Hermite between points.
 
-    Before the first point it holds the first position (velocity 0: the lead-in), after
-    the last it holds the last. Samples at increasing times cost O(1) each.
+    After the last point it holds the last position. Before the first it holds the first
+    (velocity 0: the lead-in), reached in the last ``approach_s`` of the lead-in from
+    ``approach_m`` behind it, moving the way of the joint's first stroke (a smoothstep:
+    at rest at both ends). A lead screw's nut settles anywhere in its backlash while a
+    loop holds a point, so a run that starts from a hold starts its first stroke late by
+    a different amount each run; after the approach the nut is already pushing the way
+    the path goes, in every run alike. The approach starts no farther behind than the
+    stroke allows. Samples at increasing times cost O(1) each.
+
+    :param approach_m: length (m) of the approach, >= 0; 0: the first point is held.
+    :param approach_s: duration (s) of the approach, >= 0; 0: none.
+    :param stroke_limit_m: symmetric stroke limit (m) the approach stays within.
     """
 
-    __slots__ = ('_times', '_positions', '_velocities', '_index')
+    __slots__ = ('_times', '_positions', '_velocities', '_index', '_approach_m',
+                 '_approach_s')
 
     def __init__(self, times_s: Sequence[float], positions_m: Sequence[float],
-                 velocities_m_s: Sequence[float]) -> None:
+                 velocities_m_s: Sequence[float], approach_m: float = 0.0,
+                 approach_s: float = 0.0, stroke_limit_m: float = math.inf) -> None:
         """Keep the points as plain floats (the loop samples one time per cycle)."""
         self._times = [float(t) for t in times_s]
         self._positions = [float(p) for p in positions_m]
         self._velocities = [float(v) for v in velocities_m_s]
         self._index = 0
+        if not (math.isfinite(approach_m) and approach_m >= 0.0
+                and math.isfinite(approach_s) and approach_s >= 0.0):
+            raise ValueError(f'an approach needs a length and a duration >= 0, got '
+                             f'{approach_m!r} m and {approach_s!r} s')
+        self._approach_m = self._approach_s = 0.0
+        _, directions = self.strokes(MIN_STROKE_M)
+        side = directions[0] if directions and approach_s > 0.0 else 0
+        # Signed: the approach starts at first point - approach_m, within the stroke.
+        self._approach_m = side * max(0.0, min(approach_m,
+                                               stroke_limit_m + side * self._positions[0]))
+        self._approach_s = float(approach_s) if self._approach_m else 0.0
 
     def sample(self, t_s: float) -> Tuple[float, float]:
         """Return ``(position m, velocity m/s)`` at ``t_s`` s from path time zero."""
         times = self._times
         if t_s <= times[0]:
-            return self._positions[0], 0.0 if t_s < times[0] else self._velocities[0]
+            if t_s == times[0]:
+                return self._positions[0], self._velocities[0]
+            ahead_s = times[0] - t_s
+            if ahead_s >= self._approach_s:
+                return self._positions[0] - self._approach_m, 0.0
+            u = ahead_s / self._approach_s
+            return (self._positions[0] - self._approach_m * u * u * (3.0 - 2.0 * u),
+                    6.0 * self._approach_m * u * (1.0 - u) / self._approach_s)
         if t_s >= times[-1]:
             return self._positions[-1], 0.0 if t_s > times[-1] else self._velocities[-1]
         index = self._index
@@ -206,8 +250,9 @@ class JointSampler:
         Return the joint's strokes: when each starts (s) and which way it goes (+1, -1).
 
         A stroke starts at a turning point of the positions (the first: where the joint
-        leaves its start) and counts once the joint has moved ``min_travel_m`` (m) from
-        it; wiggles smaller than that are no strokes of their own.
+        leaves its start, or where its approach starts) and counts once the joint has
+        moved ``min_travel_m`` (m) from it; wiggles smaller than that are no strokes of
+        their own.
         """
         starts: List[float] = []
         directions: List[int] = []
@@ -228,6 +273,8 @@ class JointSampler:
                 starts.append(times[high])
                 directions.append(-1)
                 direction, low = -1, index
+        if starts and self._approach_s:
+            starts[0] = times[0] - self._approach_s
         return tuple(starts), tuple(directions)
 
 

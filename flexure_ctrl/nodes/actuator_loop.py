@@ -375,7 +375,8 @@ class ActuatorLoop(LifecycleNode):
         stamp_ns = stamp_ns_of(message.header)
         try:
             plan = plan_from_message(message, self.limits.stroke_limit_m)
-            sampler = plan.sampler(self.actuator)
+            sampler = plan.sampler(self.actuator, self.p.approach_m, self.p.approach_s,
+                                   self.limits.stroke_limit_m)
         except (PlanError, KeyError) as error:
             with self._lock:
                 self.controller.problem = f'trajectory {stamp_ns} refused: {error}'

@@ -21,7 +21,8 @@ from flexure_ctrl.core.drive_client import DriveClient
 from flexure_ctrl.core.drive_link import DriveLink
 from flexure_ctrl.core.drive_units import DriveUnits, DriveUnitsError
 from flexure_ctrl.core.ploop import ActuatorController
-from flexure_ctrl.core.run import Following, LoopStatus
+from flexure_ctrl.core.run import (DEFAULT_APPROACH_M, DEFAULT_APPROACH_S, Following,
+                                   LoopStatus)
 from flexure_ctrl.interface import ACTUATOR_NAMES
 from flexure_ctrl.nodes.common import float_descriptor, int_descriptor, typed_descriptor
 import numpy as np
@@ -53,6 +54,12 @@ _RANGED = (
      'run by run); 0: off; may change live, for the next run', 0.0, 0.005, True),
     ('backlash_take_up_s', 0.02, 'duration (s) of the pulse that takes the backlash up',
      0.001, 0.5, False),
+    ('approach_m', DEFAULT_APPROACH_M, "a run's lead-in ends by coming to the first point "
+     'from this far (m) behind it, the way the path first goes, so that each run starts '
+     'with the nut on the same side of its backlash; more than the backlash; 0: the '
+     'first point is held', 0.0, 0.005, False),
+    ('approach_s', DEFAULT_APPROACH_S, 'duration (s) of that approach, at the end of the '
+     "lead-in (within the trajectory generator's lead_in_s)", 0.0, 10.0, False),
     ('watchdog_timeout_s', 0.25, "largest age (s) of the run owner's word during a run "
      '(it speaks every 0.05 s) and of a jog setpoint, before ramping to zero velocity',
      0.005, 10.0, False),
@@ -143,6 +150,8 @@ class LoopParameters:
     max_speed_m_s: float
     backlash_m: float
     backlash_take_up_s: float
+    approach_m: float
+    approach_s: float
     watchdog_timeout_s: float
     setpoint_hold_max_age_s: float
     watchdog_decel_m_s2: float

@@ -32,7 +32,8 @@ from flexure_ctrl.core.design import Design
 from flexure_ctrl.core.inverse import InverseSolver
 from flexure_ctrl.core.ploop import (ActuatorController, BacklashTakeUp, LoopLimits,
                                      ProportionalLoop)
-from flexure_ctrl.core.run import plan_path, RunMessage, RunState
+from flexure_ctrl.core.run import (DEFAULT_APPROACH_M, DEFAULT_APPROACH_S, plan_path,
+                                   RunMessage, RunState)
 from flexure_ctrl.core.trajectory import Trajectory
 from flexure_ctrl.interface import ACTUATOR_NAMES
 from flexure_ctrl.sim.drive import LeadScrewActuator, LeadScrewParameters
@@ -59,6 +60,8 @@ class LoopSettings:
     max_speed_m_s: float = 0.02
     max_accel_m_s2: float = 0.5
     rate_hz: float = LOOP_RATE_HZ
+    approach_m: float = DEFAULT_APPROACH_M
+    approach_s: float = DEFAULT_APPROACH_S
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,7 +152,8 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                                         watchdog_timeout_s=1.0, stream_hold_max_age_s=0.0,
                                         path_tolerance_m=1.0,
                                         take_up=take_up)
-        controller.load_trajectory(plan.sampler(name), _PATH_START_NS)
+        controller.load_trajectory(plan.sampler(name, loop.approach_m, loop.approach_s,
+                                                design.stroke_limit_m), _PATH_START_NS)
         controller.on_run_message(RunMessage(RunState.RUNNING, _PATH_START_NS), 0)
         controllers.append(controller)
 
