@@ -118,3 +118,34 @@ def test_random_plants_are_drawn_by_seed_within_their_stated_ranges(tmp_path):
     assert parse_seeds('100-103,7') == [100, 101, 102, 103, 7]
     with pytest.raises(ValueError, match='seeds'):
         parse_seeds('5-2')
+
+
+def test_a_stall_in_the_first_run_is_bridged_by_the_loops_gap_not_learned(design):
+    from dataclasses import replace
+    run = simulate_run(design, load_sim_config(overrides=PLANT), SinePath(), seed=3)
+
+    def first_command(knocked, starved):
+        recorded = run.run
+        if knocked:
+            # The arm 20 mm off its path for half a second: what a stalled loop leaves.
+            t_s = (recorded.tracked_t_ns - recorded.path_start_ns) / 1e9
+            bump = np.where((t_s > 5.0) & (t_s < 5.5), 0.02, 0.0)
+            recorded = replace(recorded, tracked_m=recorded.tracked_m + bump[:, None])
+        cycles = {}
+        for column, name in enumerate(ACTUATOR_NAMES):
+            keep = ~((run.loop_t_s > 5.0) & (run.loop_t_s < 5.2)) if starved else \
+                np.ones(run.loop_t_s.shape, dtype=bool)
+            cycles[name] = (run.loop_t_s[keep], run.measured_m[keep, column],
+                            run.commanded_m_s[keep, column])
+        learning = PathLearning(IterativeCorrector())
+        learning.add_run(path_errors(recorded), cycles)
+        return learning.next_command().points_m, learning.messages
+
+    calm, _ = first_command(False, False)
+    learned, _ = first_command(True, False)
+    bridged, messages = first_command(True, True)
+    # With no sign of a stall the first correction learns the excursion (gain 1) ...
+    assert np.max(np.abs(learned - calm)) > 5e-3
+    # ... but where the loops' own states show they did not cycle, it is bridged.
+    assert np.max(np.abs(bridged - calm)) < 5e-4
+    assert sum('no loop cycle for 0.2' in message for message in messages) == 2

@@ -315,8 +315,8 @@ def run(arguments: argparse.Namespace) -> int:
             spike_s = corrector.iterations[-1].spike_seconds()
             if spike_s:
                 progress.line(f'[demo] iteration {index}: {spike_s:.2f} s of error (spikes '
-                              'the run before did not have, reversals whose take-up changes) '
-                              'bridged, not learned')
+                              'the run before did not have, reversals whose take-up changes, '
+                              'stalled loops) bridged, not learned')
             for message in learning.messages:
                 progress.line(f'[demo] iteration {index}: {message}')
             if index == arguments.iterations:

@@ -14,7 +14,10 @@ correct``:
 
 When the take-up the next run will have differs from the one the run had, the run's
 error around the reversals was the backlash's, which the take-up changes: it is bridged,
-not learned (learning it too would correct the same error twice).
+not learned (learning it too would correct the same error twice). So is the error of a
+span in which a loop did not cycle (its recorded states gap): the host starved it, and
+the first correction, which has no run before it to tell a spike by, would learn the
+stall into the path.
 """
 
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple
@@ -33,6 +36,11 @@ STROKE_MIN_TRAVEL_M = 3e-4
 # A take-up that moves by less than this (m), or this fraction of itself, has not changed.
 TAKE_UP_CHANGE_M = 2e-5
 TAKE_UP_CHANGE_FRACTION = 0.2
+# A loop whose recorded states (100 Hz) gap by more than this did not cycle: its host
+# starved it, and its drive ran on at the last command. From the gap's start until the
+# loop has caught up with its plan, the arm's error is the host's and will not repeat.
+STALL_GAP_S = 0.1
+STALL_RECOVERY_S = 0.35
 
 # One actuator's loop cycles: path time (s), potentiometer reading (m), command (m/s).
 LoopCycles = Tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -64,7 +72,7 @@ class PathLearning:
         :param cycles: each actuator's loop cycles in the run (path time, as ``errors``).
         """
         self.messages = []
-        bridged: List[Tuple[float, float]] = []
+        bridged = self._stalls(errors, cycles)
         if self.backlash is not None:
             for name in ACTUATOR_NAMES:
                 if name not in cycles:
@@ -93,6 +101,25 @@ class PathLearning:
                                 for t in starts if 0.0 <= t <= errors.duration_s]
                 self.take_up_m[name] = learned
         self.corrector.add_run(errors, bridged_s=bridged)
+
+    def _stalls(self, errors: PathErrors,
+                cycles: Mapping[str, LoopCycles]) -> List[Tuple[float, float]]:
+        """Return the spans (s of path time) in which a loop was stalled, and say so."""
+        spans: List[Tuple[float, float]] = []
+        for name in ACTUATOR_NAMES:
+            if name not in cycles:
+                continue
+            t_s = np.asarray(cycles[name][0], dtype=float)
+            for index in np.flatnonzero(np.diff(t_s) > STALL_GAP_S):
+                start_s, end_s = float(t_s[index]), float(t_s[index + 1]) + STALL_RECOVERY_S
+                if end_s < 0.0 or start_s > errors.duration_s:
+                    continue
+                spans.append((start_s, end_s))
+                self.messages.append(
+                    f'{name}: no loop cycle for {t_s[index + 1] - start_s:.3f} s at path '
+                    f'time {start_s:.2f} s (a starved host): {start_s:.2f} to {end_s:.2f} s '
+                    'bridged, not learned')
+        return spans
 
     def next_command(self) -> Optional[CommandPath]:
         """Return the next run's command path (None: learning has stopped); see :attr:`note`."""
