@@ -25,6 +25,7 @@ from flexure_ctrl.core.alignment import align
 from flexure_ctrl.core.characterisation import measured_design, summarise
 from flexure_ctrl.core.characterisation import write_design_yaml
 from flexure_ctrl.core.design import find_config_file, load_design
+from flexure_ctrl.core.learning import STALL_GAP_S
 from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic, COMMAND_TOPIC,
                                     DEMAND_PATH_TOPIC, END_TOPIC, RUN_TOPIC, SETPOINTS_TOPIC,
@@ -583,8 +584,9 @@ def largest_state_gap_s(folder: Path) -> float:
 
 
 # A loop that went this long without a cycle (its 100 Hz states gap; 10-75 ms when the
-# host serves it) was starved by the host, not slowed by its own work.
-STARVED_GAP_S = 0.1
+# host serves it) was starved by the host, not slowed by its own work: the gap after
+# which the learning bridges a run's error.
+STARVED_GAP_S = STALL_GAP_S
 
 
 def test_demo_records_each_run_and_learns_the_path(tmp_path):
