@@ -583,12 +583,6 @@ def largest_state_gap_s(folder: Path) -> float:
     return largest_s
 
 
-# A loop that went this long without a cycle (its 100 Hz states gap; 10-75 ms when the
-# host serves it) was starved by the host, not slowed by its own work: the gap after
-# which the learning bridges a run's error.
-STARVED_GAP_S = STALL_GAP_S
-
-
 def test_demo_records_each_run_and_learns_the_path(tmp_path):
     for attempt in range(2):
         out, bags = tmp_path / f'demo_{attempt}', tmp_path / f'bags_{attempt}'
@@ -609,12 +603,12 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
                     if (folder / 'metadata.yaml').exists()]
         gap_s = max((largest_state_gap_s(folder) for folder in recorded), default=0.0)
         aborted = result.returncode != 0 and HOST_ABORT.search(result.stdout)
-        if gap_s <= STARVED_GAP_S and not aborted:
+        if gap_s <= STALL_GAP_S and not aborted:
             break
         print(f'demo attempt {attempt}: a loop went {gap_s * 1e3:.0f} ms without a cycle; '
               f'{result.stdout.strip().splitlines()[-1]}')
     else:
-        if gap_s > STARVED_GAP_S:
+        if gap_s > STALL_GAP_S:
             pytest.skip(f'the host starved the loops in both demos (the last: {gap_s:.3f} s '
                         'without a cycle): what the demo learned cannot be judged')
     assert result.returncode == 0, result.stdout[-3000:]

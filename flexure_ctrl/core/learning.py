@@ -36,9 +36,10 @@ STROKE_MIN_TRAVEL_M = 3e-4
 # A take-up that moves by less than this (m), or this fraction of itself, has not changed.
 TAKE_UP_CHANGE_M = 2e-5
 TAKE_UP_CHANGE_FRACTION = 0.2
-# A loop whose recorded states (100 Hz) gap by more than this did not cycle: its host
-# starved it, and its drive ran on at the last command. From the gap's start until the
-# loop has caught up with its plan, the arm's error is the host's and will not repeat.
+# A loop whose recorded states (100 Hz; gaps of 10-75 ms when the host serves it) gap by
+# more than this did not cycle: its host starved it, and its drive ran on at the last
+# command. From the gap's start until the loop has caught up with its plan, the arm's
+# error is the host's and will not repeat.
 STALL_GAP_S = 0.1
 STALL_RECOVERY_S = 0.35
 
