@@ -25,7 +25,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Dict, List, Optional, Sequence, TextIO, Tuple, Union
+from typing import List, Optional, Sequence, TextIO, Tuple, Union
 
 from flexure_ctrl import interface
 
@@ -37,9 +37,6 @@ READY_TIMEOUT_S = 60.0
 PROBE_PERIOD_S = 0.1
 # Longest wait (s) in stop_all for a readiness wait to notice the stop and return.
 READINESS_EXIT_S = 2.0
-# Longest wait (s) after a node's process ended for the graph to drop its name: a node
-# started again under that name before then counts as its own namesake.
-GRAPH_LEAVE_TIMEOUT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -192,7 +189,6 @@ class Launcher:
         self._probe_lock = threading.Lock()
         self._cancelled = threading.Event()
         self._readiness_threads: List[threading.Thread] = []
-        self._readiness: Dict[str, Readiness] = {}  # each child by name: what it awaited
 
     def __enter__(self) -> 'Launcher':
         return self
@@ -235,7 +231,6 @@ class Launcher:
             command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             text=True, bufsize=1, start_new_session=True, preexec_fn=prepare_child)
         self.children.append((name, process))
-        self._readiness[name] = ready
         self.say(self.name, f'started {name} (pid {process.pid})'
                  + (f' at niceness +{niceness}' if niceness else ''))
 
@@ -345,32 +340,13 @@ class Launcher:
         return worst
 
     def stop(self, name: str) -> Optional[int]:
-        """
-        Stop the child ``name`` (Ctrl-C, then harder); return its exit status.
-
-        A child awaited in the ROS graph is stopped once the graph no longer shows its
-        node (up to :data:`GRAPH_LEAVE_TIMEOUT_S`), so that it can be started again.
-        """
+        """Stop the child ``name`` (Ctrl-C, then harder); return its exit status."""
         for child, process in self.children:
             if child == name:
                 self.children.remove((child, process))
                 self._expected_exits.append(process)
-                code = self._stop(child, process)
-                ready = self._readiness.pop(name, None)
-                if isinstance(ready, (InGraph, Active)):
-                    self._wait_left_graph(ready.node)
-                return code
+                return self._stop(child, process)
         return None
-
-    def _wait_left_graph(self, node_name: str) -> None:
-        probe = self._ros_probe()
-        deadline = time.monotonic() + GRAPH_LEAVE_TIMEOUT_S
-        while probe.count_nodes(node_name):
-            if time.monotonic() > deadline:
-                self.say(self.name, f'/{node_name} still shows in the ROS graph '
-                                    f'{GRAPH_LEAVE_TIMEOUT_S:g} s after its process ended')
-                return
-            time.sleep(PROBE_PERIOD_S)
 
     def _stop(self, name: str, process: subprocess.Popen) -> int:
         if process.poll() is not None:
