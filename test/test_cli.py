@@ -6,18 +6,24 @@ import os
 import sys
 import time
 
-from flexure_ctrl.cli import ros_probe
+from diagnostic_msgs.msg import DiagnosticStatus
+from flexure_ctrl.cli import demo_command, ros_probe
 from flexure_ctrl.cli.launcher import free_port, InGraph, Launcher, Listening
 from flexure_ctrl.cli.main import build_parser, main
 from flexure_ctrl.cli.ros_probe import RosProbe
 from flexure_ctrl.cli.up_command import plan_launches, SIM_BACKGROUND_NICENESS
 from flexure_ctrl.core.design import load_design
 from flexure_ctrl.core.kinematics import TwoLinkArm
+from flexure_ctrl.interface import (COMMAND_PATH_TOPIC, CORRECTION_TOPICS, DEMAND_PATH_TOPIC,
+                                    END_TOPIC, RECORDER, RUN_TOPIC)
 from flexure_ctrl.nodes.common import destroy_rcl_node
+from geometry_msgs.msg import PointStamped
 from helpers import spin_in_thread, wait_for
 from lifecycle_msgs.srv import ChangeState
+from nav_msgs.msg import Path
 import numpy as np
 import pytest
+import rclpy
 from rclpy.client import Client
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode
@@ -212,6 +218,28 @@ def test_a_transition_whose_answer_is_lost_is_seen_done_in_the_nodes_state(
         probe.shutdown()
         executor.shutdown()
         destroy_rcl_node(node)
+
+
+def test_a_demo_runs_recorder_is_not_taken_for_the_one_of_the_run_before(tmp_path, context):
+    # The graph can show a recorder for seconds after its process ended: the demo's next
+    # run must neither count it as its own recorder up nor refuse to start beside it.
+    ghost = rclpy.create_node(demo_command.recorder_ready(demo_command.recorder_name(0)).node,
+                              context=context)
+    rig = rclpy.create_node('rig_publishers', context=context)  # what it waits to record
+    publishers = [rig.create_publisher(kind, topic, 1) for kind, topic in (
+        (Path, DEMAND_PATH_TOPIC), (Path, COMMAND_PATH_TOPIC),
+        (DiagnosticStatus, RUN_TOPIC), (PointStamped, END_TOPIC))]
+    assert sorted(publisher.topic_name for publisher in publishers) == sorted(
+        CORRECTION_TOPICS)
+    try:
+        with Launcher(quiet=True) as launcher:
+            demo_command._start_recorder(launcher, tmp_path, 'run_1', 1)
+            assert launcher.stop(RECORDER) == 0, '\n'.join(launcher.lines)
+            assert not any('already runs' in line for line in launcher.lines)
+        assert (tmp_path / 'run_1').exists()
+    finally:
+        destroy_rcl_node(rig)
+        destroy_rcl_node(ghost)
 
 
 def test_demo_refuses_a_negative_spike_threshold_before_starting_anything(tmp_path, capsys):

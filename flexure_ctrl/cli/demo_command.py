@@ -29,16 +29,33 @@ from flexure_ctrl.core.learning import PathLearning
 from flexure_ctrl.core.repeatability import repeatability_floor
 from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.core.runs import load_actuator_states, load_last_run
-from flexure_ctrl.interface import (ACTUATOR_NAMES, COMMAND_TOPIC, CORRECTION_TOPICS, RECORDER,
-                                    RECORDER_INTAKE, RUN_STATUS_NAME, RUN_TOPIC,
+from flexure_ctrl.interface import (ACTUATOR_NAMES, COMMAND_TOPIC, CORRECTION_TOPICS,
+                                    INTAKE_SUFFIX, RECORDER, RUN_STATUS_NAME, RUN_TOPIC,
                                     SETPOINTS_TOPIC, START_SERVICE, TRAJECTORY_GENERATOR)
 
 LEAD_IN_S = 2.5
 LEAD_OUT_S = 1.0
 RECORDER_TIMEOUT_S = 60.0
-# The recorder is up once it has subscribed to what path correction needs. It records
-# every run topic (its default), the actuators' states included.
-RECORDER_READY = InGraph(RECORDER_INTAKE, subscriptions=CORRECTION_TOPICS)
+
+
+def recorder_name(index: int) -> str:
+    """
+    Name the recorder of run ``index``: each run's has a name of its own.
+
+    The graph can show a recorder for seconds after its process ended (seen: over 10 s);
+    a namesake there would count as the new one up before it has subscribed, or as a
+    second recorder.
+    """
+    return f'{RECORDER}_{index}'
+
+
+def recorder_ready(node_name: str) -> InGraph:
+    """
+    Say when the recorder ``node_name`` is up: subscribed to what path correction needs.
+
+    It records every run topic (its default), the actuators' states included.
+    """
+    return InGraph(node_name + INTAKE_SUFFIX, subscriptions=CORRECTION_TOPICS)
 
 
 class DemoError(FlexureCtrlError, RuntimeError):
@@ -231,19 +248,22 @@ def _up_arguments(arguments: argparse.Namespace) -> argparse.Namespace:
     return build_parser().parse_args(argv)
 
 
-def _start_recorder(launcher: Launcher, bag_dir: Path, bag_name: str) -> None:
+def _start_recorder(launcher: Launcher, bag_dir: Path, bag_name: str, index: int) -> None:
+    name = recorder_name(index)
+    ready = recorder_ready(name)
     _, up = launcher.start(RECORDER, node_command(RECORDER, [
-        '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}']), RECORDER_READY)
+        '-r', f'__node:={name}', '-p', f'bag_dir:={bag_dir}', '-p', f'bag_name:={bag_name}']),
+        ready)
     if not up.wait(RECORDER_TIMEOUT_S) or launcher.first_exit.is_set():
         launcher.stop(RECORDER)
-        raise DemoError(f'the recorder did not come up ({RECORDER_READY.describe()}):\n'
+        raise DemoError(f'the recorder did not come up ({ready.describe()}):\n'
                         + '\n'.join(launcher.lines[-10:]))
 
 
 def _record_run(launcher: Launcher, operator: _Operator, bag_dir: Path, bag_name: str,
                 arguments: argparse.Namespace, progress: _Progress, index: int) -> Path:
     """Record one run of the path; return its bag folder."""
-    _start_recorder(launcher, bag_dir, bag_name)
+    _start_recorder(launcher, bag_dir, bag_name, index)
     try:
         operator.start_run()
         run_s = LEAD_IN_S + arguments.period + LEAD_OUT_S
