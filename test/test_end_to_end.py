@@ -612,6 +612,13 @@ def test_demo_records_each_run_and_learns_the_path(tmp_path):
             pytest.skip(f'the host starved the loops in both demos (the last: {gap_s:.3f} s '
                         'without a cycle): what the demo learned cannot be judged')
     assert result.returncode == 0, result.stdout[-3000:]
+    # --quiet echoed no process's lines; the demo's folder keeps them all, stop included.
+    assert '[actuator_2]' not in result.stdout
+    rig_log = (out / 'rig.log').read_text()
+    for name in ('sim', 'actuator_1', 'actuator_2', 'recorder', 'trajectory_generator'):
+        assert f'\n[{name}] ' in rig_log, name
+    assert any(line.startswith('[actuator_1]') and 'disabled' in line.lower()
+               for line in rig_log.splitlines()), rig_log[-3000:]
     summary = json.loads((out / 'summary.json').read_text())
     original, adjusted = summary['iterations']
     for index, row in enumerate((original, adjusted)):

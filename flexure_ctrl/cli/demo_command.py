@@ -36,6 +36,7 @@ from flexure_ctrl.interface import (ACTUATOR_NAMES, COMMAND_TOPIC, CORRECTION_TO
 LEAD_IN_S = 2.5
 LEAD_OUT_S = 1.0
 RECORDER_TIMEOUT_S = 60.0
+RIG_LOG = 'rig.log'  # in --out: every line of every process of the demo
 
 
 def recorder_name(index: int) -> str:
@@ -95,7 +96,7 @@ def add_parser(commands) -> None:
     parser.add_argument('--tracker-port', type=int, metavar='PORT',
                         help='tracker port of the simulated rig (default: config/sim.yaml)')
     parser.add_argument('--quiet', action='store_true',
-                        help="do not echo the nodes' output")
+                        help="do not echo the nodes' output (OUT/rig.log has it either way)")
     parser.set_defaults(run=run)
 
 
@@ -365,13 +366,17 @@ def run(arguments: argparse.Namespace) -> int:
                           f'{1e3 * floor.max_abs_m[1]:.3f} mm, rms {1e3 * floor.rms_m[0]:.3f}'
                           f' / {1e3 * floor.rms_m[1]:.3f} mm in x / y  ({bag})')
     except DemoError as error:
-        print(f'flexure-ctrl demo: {error}', file=sys.stderr)
+        print(f'flexure-ctrl demo: {error} (the output of every process: {out / RIG_LOG})',
+              file=sys.stderr)
         return 1
     finally:
         if operator is not None:
             operator.close()
         launcher.stop_all()
         folder.cleanup()
+        # What every process said, stop included: why a run ended is often in the
+        # simulator's or a loop's lines, which --quiet does not echo.
+        (out / RIG_LOG).write_text(''.join(line + '\n' for line in launcher.lines))
     report_command.add_reductions(rows)
     summary = {'design': arguments.design, 'period_s': arguments.period,
                'iterations': rows,
