@@ -306,3 +306,80 @@ def test_a_client_that_stops_reading_is_dropped_and_holds_no_sender_up():
             drive.shutdown()
             listener.shutdown()
             stalled.close()
+
+
+def bcm_client(port):
+    """Open the bus and stay in BCM mode, the daemon's default; return the client."""
+    client = RawClient(port, handshake=False)
+    assert client.reply() == b'< hi >'
+    client.sock.sendall(b'< open can0 >')
+    assert client.reply() == b'< ok >'
+    return client
+
+
+def spacings(frames):
+    times = [message.timestamp for message in frames]
+    return [b - a for a, b in zip(times, times[1:])]
+
+
+def test_a_bcm_mode_job_is_sent_by_the_server_until_deleted_or_its_connection_closes(
+        server, connect):
+    listener = connect()
+    wait_for(lambda: server.client_count == 1, TIMEOUT_S, 'the listener')
+    job = bcm_client(server.port)
+    added_s = time.time()
+    job.sock.sendall(b'< add 0 50000 77D 1 05 >')
+    frames = receive(listener, 6)
+    assert summary(frames) == [(0x77D, False, 1, b'\x05')] * 6
+    # The first one period after the add, then every period (the server's clock).
+    assert frames[0].timestamp - added_s > 0.04
+    assert all(0.03 < gap < 0.1 for gap in spacings(frames)), spacings(frames)
+    # A BCM-mode client subscribed to nothing: the bus's frames do not reach it.
+    listener.send(can.Message(arbitration_id=0x123, is_extended_id=False, data=b'\x01'))
+    job.sock.sendall(b'< update 77D 1 7F >')
+    wait_for(lambda: any(m.data == b'\x7f' for m in receive(listener, 1)), TIMEOUT_S,
+             'the updated frame')
+    job.sock.sendall(b'< echo >')
+    assert job.reply() == b'< echo >'  # nothing came before it
+    job.sock.sendall(b'< delete 77D >')
+    time.sleep(0.1)  # a frame already on its way may still arrive
+    while listener.recv(0.0) is not None:
+        pass
+    assert receive(listener, 1, timeout_s=0.3) == []
+    # A job ends with the connection that set it up.
+    job.sock.sendall(b'< add 0 50000 77E 1 05 >')
+    assert summary(receive(listener, 1)) == [(0x77E, False, 1, b'\x05')]
+    job.close()
+    wait_for(lambda: server.client_count == 1, TIMEOUT_S, 'the job client to leave')
+    while listener.recv(0.0) is not None:
+        pass
+    assert receive(listener, 1, timeout_s=0.3) == []
+
+
+def test_a_bcm_job_due_and_not_yet_sent_counts_as_pending(server, connect):
+    # A drive that takes the job's frames and, here, holds the sending thread up.
+    gate = threading.Event()
+    taken = []
+    member = connect('hub')
+    member.set_handler(lambda message: (taken.append(message.arbitration_id), gate.wait(10)))
+    job = bcm_client(server.port)
+    try:
+        job.sock.sendall(b'< add 0 100000 77D 1 05 >')
+        wait_for(lambda: taken, TIMEOUT_S, 'the first cyclic frame')
+        assert server.hub.input_pending()  # the server is still handing it on
+        time.sleep(0.15)  # and the next is due meanwhile
+        assert server.hub.input_pending()
+        gate.set()
+        wait_for(lambda: not server.hub.input_pending(), TIMEOUT_S, 'nothing pending')
+    finally:
+        gate.set()
+        job.close()
+
+
+def test_bcm_commands_the_simulator_does_not_serve_drop_the_client(server):
+    for command in (b'< subscribe 0 0 123 >', b'< add 0 100 1234 1 05 >',
+                    b'< add 0 x 123 1 05 >', b'< delete >'):
+        client = bcm_client(server.port)
+        client.sock.sendall(command)
+        assert client.closed_by_server(), command
+        client.close()

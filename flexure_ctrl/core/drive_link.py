@@ -8,14 +8,15 @@ the next try, a drive that did not answer is tried again on the same bus. A driv
 answers but is refused (wrong identity, an SDO abort, limits) ends the start at once.
 After a lost bus, :meth:`DriveLink.reopen` gives a new bus and a newly commissioned
 drive. From the bus's opening until :meth:`DriveLink.close`, the master's heartbeat (or
-its node-guarding requests) goes out from a thread of its own
-(:class:`~flexure_ctrl.core.master_beat.MasterBeat`), whatever the caller does between
-its calls. Time is passed in (integer ns of a monotonic clock). Not thread-safe: the
+its node-guarding requests) goes out on its own
+(:class:`~flexure_ctrl.core.master_beat.MasterBeat`: a cyclic job of the bus where it
+has them, else a thread), whatever the caller does between its calls, for as long as
+the loop progresses. Time is passed in (integer ns of a monotonic clock). Not thread-safe: the
 caller orders its calls.
 """
 
 import socket
-from typing import Optional
+from typing import Callable, Optional
 
 import can
 from canopen import objectdictionary
@@ -23,8 +24,8 @@ from flexure_ctrl.core.commissioning import commission, CommissioningError, \
     CommissioningTimeoutError, CONSUMER_HEARTBEAT, DriveDescription, LIFE_TIME_FACTOR
 from flexure_ctrl.core.drive_client import DriveClient, DriveError
 from flexure_ctrl.core.errors import FlexureCtrlError, one_line, quiet_library_loggers
-from flexure_ctrl.core.master_beat import guard_request, heartbeat_frame, MasterBeat, \
-    SendLock
+from flexure_ctrl.core.master_beat import CyclicTask, guard_request, heartbeat_frame, \
+    MasterBeat, SendLock, SocketcandCyclicTask
 
 _NS_PER_S = 1_000_000_000
 INTERFACES_WITH_HOST = ('socketcand',)
@@ -73,12 +74,15 @@ class DriveLink:
     :param heartbeat_timeout_s: largest gap between drive heartbeats (s).
     :param connect_timeout_s: how long (s) to keep trying at start-up.
     :param retry_s: time (s) between two tries.
+    :param progress: the loop's progress, for the beat to watch (see
+        :class:`~flexure_ctrl.core.master_beat.MasterBeat`); None: not watched.
     """
 
     def __init__(self, interface: str, channel: str, host: str, port: int,
                  description: DriveDescription,
                  dictionary: objectdictionary.ObjectDictionary, heartbeat_timeout_s: float,
-                 connect_timeout_s: float, retry_s: float = 0.2) -> None:
+                 connect_timeout_s: float, retry_s: float = 0.2,
+                 progress: Optional[Callable[[], Optional[int]]] = None) -> None:
         self._bus_arguments = (interface, channel, host, port)
         self.description = description.resolved(dictionary)
         self.beat: Optional[MasterBeat] = None
@@ -92,6 +96,7 @@ class DriveLink:
         self.problem = 'not connected yet'
         self._deadline_ns: Optional[int] = None
         self._next_try_ns = 0
+        self._progress = progress
 
     def try_connect(self, now_ns: int) -> Optional[bool]:
         """
@@ -162,7 +167,19 @@ class DriveLink:
         else:
             return
         self.beat = MasterBeat(self.bus, frame, description.master_heartbeat_period_s,
-                               name=f'drive-{description.node_id}-beat').start()
+                               name=f'drive-{description.node_id}-beat',
+                               cyclic=self._cyclic(frame), progress=self._progress).start()
+
+    def _cyclic(self, frame: can.Message) -> Optional[Callable[[], CyclicTask]]:
+        """How the bus sends ``frame`` cyclically by itself; None: it cannot."""
+        interface, channel, host, port = self._bus_arguments
+        period_s = self.description.master_heartbeat_period_s
+        if interface == 'socketcan':  # the kernel's broadcast manager
+            bus = self.bus
+            return lambda: bus.send_periodic(frame, period_s, store_task=False)
+        if interface == 'socketcand' and not frame.is_remote_frame:
+            return lambda: SocketcandCyclicTask(host, port, channel, frame, period_s)
+        return None
 
     def reopen(self) -> DriveClient:
         """

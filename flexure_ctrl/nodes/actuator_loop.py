@@ -28,9 +28,12 @@ status topic; an error in one leaves the drive disabled and the bus closed.
 Safety: a drive fault, a lost heartbeat, a lost bus or an NMT state change stops
 commanding (one quick-stop frame) and latches ERROR until ``~/reset``; ``~/quick_stop``
 latches likewise; after a lost bus ``~/reset`` opens a new bus and commissions the drive
-again. From configure to cleanup the loop sends its own CANopen heartbeat (or, to a drive
-with node guarding, its guard requests) from a thread of its own, which the commissioned
-drive watches: if the process or the PC dies, the drive quick-stops by itself. The run
+again. From configure to cleanup the loop's own CANopen heartbeat (or, to a drive with
+node guarding, its guard requests) goes out as a cyclic job of the bus where it has them
+(SocketCAN's broadcast manager, a socketcand daemon), else from a thread of its own
+(:class:`~flexure_ctrl.core.master_beat.MasterBeat`), and the commissioned drive watches
+it: if the process or the PC dies, or the loop thread stops cycling while the process
+runs, the beat stops and the drive quick-stops by itself. The run
 owner then ends the run on the other loop too. A run owner
 silent for ``watchdog_timeout_s``, or a reading beyond ``path_tolerance_m`` from the plan,
 ramps the command to zero and holds it. :meth:`ActuatorLoop.safe_stop` (run on any
@@ -114,7 +117,8 @@ class ActuatorLoop(LifecycleNode):
         description = p.drive_description(ActuatorLoopConfigError)
         self.link = DriveLink(p.can_interface, p.can_channel, p.can_host, p.can_port,
                               description, load_eds(description.eds_file, p.node_id),
-                              p.heartbeat_timeout_s, p.connect_timeout_s)
+                              p.heartbeat_timeout_s, p.connect_timeout_s,
+                              progress=self._loop_progress)
         # Guards the drive, the controller and the link between the loop thread and the
         # executor's callbacks. Re-entrant: service handlers call helpers.
         self._lock = threading.RLock()
@@ -185,6 +189,11 @@ class ActuatorLoop(LifecycleNode):
                 with self._lock:
                     self.controller.take_up.backlash_m = float(parameter.value)
                 self.get_logger().info(f'backlash take-up set to {parameter.value * 1e3:.3f} mm')
+
+    def _loop_progress(self) -> Optional[int]:
+        """Return the loop thread's cycle count (for the beat); None while it is not running."""
+        thread = self.thread
+        return thread.cycles if thread.alive else None
 
     def _new_thread(self) -> LoopThread:
         p = self.p

@@ -20,6 +20,7 @@ from flexure_ctrl.core.design import find_config_file
 from flexure_ctrl.core.drive_client import DriveClient
 from flexure_ctrl.core.drive_link import DriveLink
 from flexure_ctrl.core.drive_units import DriveUnits, DriveUnitsError
+from flexure_ctrl.core.master_beat import MasterBeat
 from flexure_ctrl.core.ploop import ActuatorController
 from flexure_ctrl.core.run import (DEFAULT_APPROACH_M, DEFAULT_APPROACH_S, Following,
                                    LoopStatus)
@@ -294,6 +295,11 @@ class LoopThread:
         """Whether the thread runs."""
         return self._thread.is_alive()
 
+    @property
+    def cycles(self) -> int:
+        """How many cycles the thread has begun."""
+        return self._count
+
     def start(self) -> None:
         """Start cycling."""
         self._thread.start()
@@ -438,5 +444,15 @@ def link_values(link: DriveLink) -> List[Tuple[str, str]]:
         ('drive protection', description.protection),
         ('drive TPDO timing', description.tpdo_timing),
         ('drive units', description.units.describe()),
-        ('master beat', f'{beat.sent} sent, {beat.failures} failed' if beat else 'none'),
+        ('master beat', _beat_text(beat)),
     ]
+
+
+def _beat_text(beat: Optional[MasterBeat]) -> str:
+    if beat is None:
+        return 'none'
+    if beat.silenced:
+        return beat.silenced
+    if beat.by_bus:
+        return 'sent by the bus'
+    return f'{beat.sent} sent, {beat.failures} failed'

@@ -23,14 +23,24 @@ Protocol (server ``->`` client, one command per ``< ... >``)::
     <- < send 123 6 f 0 18 fc ff ff >                 (length and bytes in hex)
     <- < echo >             -> < echo >
 
+A client that opened the bus and sends BCM-mode commands instead of ``< rawmode >``
+stays in BCM mode (:mod:`flexure_ctrl.sim.bcm`): it receives no frames (it subscribes
+to none), and its cyclic jobs are sent by the server, as the daemon's kernel jobs are::
+
+    <- < add 0 100000 77D 1 05 >     (every 0.1 s from now: seconds, microseconds)
+    <- < update 77D 1 05 >           (new data, same timer)
+    <- < delete 77D >                (closing the connection ends its jobs too)
+    <- < send 123 1 05 >             (once)
+
 The python-can client checks each handshake answer with a single ``recv`` and would
 fail if a frame were glued to the last ``< ok >``. So frames reach a new client only
 once it has sent its first command after raw mode, or after a short grace period
 (``handshake_grace_s``), whichever comes first; frames on the bus meanwhile are queued,
 not lost.
 
-A client that sends anything else (bad syntax, unknown commands, a DLC above 8, non
-ASCII) or stops reading for ``io_timeout_s`` is logged and dropped; the others carry on.
+A client that sends anything else (bad syntax, unknown commands such as the BCM
+mode's receive filters, a DLC above 8, non ASCII, a change of mode after the first)
+or stops reading for ``io_timeout_s`` is logged and dropped; the others carry on.
 """
 
 import logging
@@ -39,10 +49,11 @@ import socket
 import string
 import threading
 import time
-from typing import List, Optional, Set
+from typing import List, Optional, Set, Tuple
 
 import can
 from flexure_ctrl.core.errors import FlexureCtrlError
+from flexure_ctrl.sim.bcm import CyclicJobs
 from flexure_ctrl.sim.hub import CanHub
 from flexure_ctrl.sim.loopback import loopback_address, LoopbackServer
 
@@ -75,6 +86,10 @@ class SocketcandServerStateError(SocketcandServerError, RuntimeError):
 
 class SocketcandProtocolError(SocketcandServerError):
     """A client sent something that is not valid socketcand (raw mode); it is dropped."""
+
+
+def _drop(message: can.Message) -> None:
+    """Take nothing: a BCM-mode client's sink (it subscribed to nothing)."""
 
 
 def _timestamp_text(timestamp_s: float) -> str:
@@ -142,6 +157,31 @@ def parse_send(tokens: List[str]) -> can.Message:
                        dlc=length)
 
 
+def parse_add(tokens: List[str]) -> Tuple[float, can.Message]:
+    """
+    Period (s) and frame of a BCM-mode ``< add <sec> <usec> <id> <len> <byte> ... >``.
+
+    Seconds and microseconds are decimal, as the daemon reads them; the rest is as in
+    :func:`parse_send`.
+
+    :raises SocketcandProtocolError: if the command is malformed.
+    """
+    if (len(tokens) < 5 or tokens[0] != 'add'
+            or not (tokens[1].isdigit() and tokens[2].isdigit())):
+        raise SocketcandProtocolError(f'not an add command: {" ".join(tokens)!r}')
+    return int(tokens[1]) + int(tokens[2]) * 1e-6, parse_send(['send'] + tokens[3:])
+
+
+def _job_key(message: can.Message) -> Tuple[int, bool]:
+    return message.arbitration_id, message.is_extended_id
+
+
+def _id_key(id_text: str) -> Tuple[int, bool]:
+    """Return the job key of a BCM-mode ``update`` or ``delete`` id (8 digits: extended)."""
+    extended = len(id_text) == 8
+    return _hex_field(id_text, 8 if extended else 3, 'CAN id'), extended
+
+
 class _ClientConnection:
     """
     One TCP client, bridged to its own member of the hub.
@@ -171,6 +211,7 @@ class _ClientConnection:
         self._stuck_since_s: Optional[float] = None
         self._grace: Optional[threading.Timer] = None
         self._bus: Optional[can.BusABC] = None
+        self._bcm = False  # the client chose BCM mode (cyclic jobs, receives nothing)
         self._reader = threading.Thread(target=self._run_reader, daemon=True,
                                         name=f'socketcand-reader-{peer}')
 
@@ -248,7 +289,15 @@ class _ClientConnection:
         while self._bus is None:
             for tokens in self._read_commands():
                 if self._bus is not None:
-                    self._handle_raw_command(tokens)
+                    self._handle_command(tokens)
+                elif opened and tokens[:1] in (['add'], ['update'], ['delete'], ['send'],
+                                               ['echo']):
+                    # BCM mode: on the bus to send, subscribed to nothing.
+                    bus = self._server.hub.bus()
+                    bus.set_input_pending(self.input_pending)
+                    bus.set_sink(_drop)
+                    self._bus, self._bcm, self._may_forward = bus, True, True
+                    self._handle_command(tokens)
                 elif not opened and tokens[:1] == ['open'] and len(tokens) == 2:
                     if tokens[1] != self._server.channel:
                         self._send_text('< error could not open bus >')
@@ -275,7 +324,7 @@ class _ClientConnection:
 
     def input_pending(self) -> bool:
         """Return whether the client sent frames that the bus has not yet been given."""
-        if self._handling:
+        if self._handling or (self._bcm and self._server.cyclic.overdue(self)):
             return True
         try:
             readable, _, _ = select.select([self._sock], [], [], 0.0)
@@ -295,20 +344,29 @@ class _ClientConnection:
             batch.clients = set()
             try:
                 for tokens in self._read_commands():
-                    self._handle_raw_command(tokens)
+                    self._handle_command(tokens)
             finally:
                 self._handling = False
                 clients, batch.clients = batch.clients, None
                 for client in clients:
                     client.flush()
 
-    def _handle_raw_command(self, tokens: List[str]) -> None:
+    def _handle_command(self, tokens: List[str]) -> None:
         # Any command after raw mode proves the client has read the last '< ok >'.
         self._start_forwarding()
         if tokens[:1] == ['send']:
             self._bus.send(parse_send(tokens))
         elif tokens == ['echo']:
             self._queue_text('< echo >')
+        elif self._bcm and tokens[:1] == ['add']:
+            period_s, message = parse_add(tokens)
+            self._server.cyclic.add(self, _job_key(message), message, period_s,
+                                    self._bus.send)
+        elif self._bcm and tokens[:1] == ['update'] and len(tokens) >= 3:
+            message = parse_send(['send'] + tokens[1:])
+            self._server.cyclic.update(self, _job_key(message), message)
+        elif self._bcm and tokens[:1] == ['delete'] and len(tokens) == 2:
+            self._server.cyclic.delete(self, _id_key(tokens[1]))
         else:
             raise SocketcandProtocolError(f'unsupported command {" ".join(tokens)!r}')
 
@@ -367,6 +425,8 @@ class _ClientConnection:
         self.stop()
         if self._grace is not None:
             self._grace.cancel()
+        if self._bcm:
+            self._server.cyclic.delete_all(self)
         if self._bus is not None:
             self._bus.shutdown()
         with self._out_lock:
@@ -420,12 +480,15 @@ class SocketcandServer(LoopbackServer):
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._state = 'new'
+        # The BCM-mode clients' cyclic jobs (from start() to shutdown()).
+        self.cyclic: Optional[CyclicJobs] = None
 
     def start(self) -> 'SocketcandServer':
         """Listen and accept clients from now on (``_listen`` raises); return self."""
         with self._lock:
             if not self._listen(16):
                 return self
+            self.cyclic = CyclicJobs()
             self._acceptor = threading.Thread(target=self._run_acceptor, daemon=True,
                                               name=f'socketcand-accept-{self._port}')
             self._acceptor.start()
@@ -452,6 +515,7 @@ class SocketcandServer(LoopbackServer):
             client.stop()
         for client in clients:
             client.join(timeout_s=5.0)
+        self.cyclic.shutdown()
         _log.info('socketcand server on port %d shut down', self._port)
 
     def __enter__(self) -> 'SocketcandServer':
