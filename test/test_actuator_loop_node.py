@@ -191,8 +191,8 @@ def make_node(context: rclpy.Context, channel: str, *extra: str) -> ActuatorLoop
                  '-p', 'can.interface:=virtual', '-p', f'can.channel:={channel}',
                  '-p', f'node_id:={NODE_ID}', '-p', 'design.stroke_limit_m:=0.045',
                  '-p', 'drive.eds_file:=drives/lead_screw_sim.eds',
-                 # The loop thread shares this process with the test's executor: as in
-                 # config/sim.yaml, a stall must not make the drive stop on its own.
+                 # The loop thread shares this process (and its GIL) with the test's
+                 # executor: a stall of it must not make the drive stop on its own.
                  '-p', 'drive.consumer_heartbeat_s:=1.0',
                  '-p', 'watchdog_timeout_s:=1.0',
                  '-p', f'watchdog_decel_m_s2:={WATCHDOG_DECEL_M_S2}',
