@@ -72,11 +72,11 @@ def test_a_beat_stops_once_its_loop_makes_no_progress_and_not_while_it_does():
         beat = MasterBeat(SendLock(master), heartbeat_frame(126), 0.02,
                           progress=lambda: cycles[0] if running[0] else None).start()
         try:
-            assert len(beat_times(bus, 4 * LOOP_SILENCE_S)) > 60  # progressing
+            assert len(beat_times(bus, 2 * LOOP_SILENCE_S)) > 30  # progressing
             stop.set()
             thread.join()
             running[0] = False  # no loop meant to run: nothing to watch
-            assert len(beat_times(bus, 2 * LOOP_SILENCE_S)) > 30
+            assert len(beat_times(bus, LOOP_SILENCE_S + 0.1)) > 20
             assert not beat.silenced
             running[0] = True  # a loop meant to run that does not cycle
             stopped_s = time.time()
