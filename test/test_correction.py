@@ -205,7 +205,7 @@ def test_a_recording_that_misses_the_end_of_the_path_is_refused():
 
 
 def test_a_run_worse_than_the_best_steps_back_to_the_best_command_with_half_the_gain():
-    corrector = IterativeCorrector(gain=1.0, later_gain=0.8, settled_gain=0.8)
+    corrector = IterativeCorrector(gain=1.0, later_gain=0.8)
     demand = lambda t: demand_at(PATH, t)  # noqa: E731
     corrector.add_run(path_errors(make_run(demand, noise_m=2e-5, seed=1)))
     first = command_function(corrector.next_command())
@@ -225,7 +225,7 @@ def test_a_run_worse_than_the_best_steps_back_to_the_best_command_with_half_the_
     expected = corrected_command(second, gain=0.4)
     assert np.allclose(stepped.points_m, expected.points_m, atol=1e-12)
     # Each step back halves the gain again, until learning stops.
-    corrector = IterativeCorrector(gain=1.0, later_gain=0.8, settled_gain=0.8, min_gain=0.3)
+    corrector = IterativeCorrector(gain=1.0, later_gain=0.8, min_gain=0.3)
     for errors in (path_errors(make_run(demand)), second, worse):
         corrector.add_run(errors)
     assert corrector.next_command() is not None and corrector.gain == pytest.approx(0.4)
@@ -234,7 +234,7 @@ def test_a_run_worse_than_the_best_steps_back_to_the_best_command_with_half_the_
 
 
 def test_a_run_that_differs_from_the_best_within_its_scatter_does_not_step_back():
-    corrector = IterativeCorrector(gain=1.0, later_gain=0.8, settled_gain=0.8)
+    corrector = IterativeCorrector(gain=1.0, later_gain=0.8)
     demand = lambda t: demand_at(PATH, t)  # noqa: E731
     corrector.add_run(path_errors(make_run(demand, noise_m=2e-5, seed=1)))
     command = command_function(corrector.next_command())
@@ -278,34 +278,6 @@ def test_corrections_after_the_first_use_the_later_gain():
     assert np.allclose(later.points_m, expected.points_m, atol=1e-12)
 
 
-def test_corrections_from_the_third_on_use_the_settled_gain():
-    corrector = IterativeCorrector(gain=1.0, later_gain=1.0, settled_gain=0.7,
-                                   spike_threshold=None)
-    command = lambda t: demand_at(PATH, t)  # noqa: E731
-    for expected_gain in (1.0, 1.0, 0.7, 0.7):
-        errors = path_errors(make_run(command))
-        corrector.add_run(errors)
-        learned = corrector.next_command()
-        assert corrector.note == '' and corrector.gain == expected_gain
-        expected = corrected_command(errors, gain=expected_gain)
-        assert np.allclose(learned.points_m, expected.points_m, atol=1e-12)
-        command = command_function(learned)
-
-
-def test_a_step_back_before_the_third_correction_keeps_its_smaller_gain():
-    corrector = IterativeCorrector(gain=1.0, later_gain=1.0, settled_gain=0.7)
-    demand = lambda t: demand_at(PATH, t)  # noqa: E731
-    corrector.add_run(path_errors(make_run(demand, noise_m=2e-5, seed=1)))
-    first = command_function(corrector.next_command())
-    corrector.add_run(path_errors(make_run(first, noise_m=2e-5, seed=2)))
-    corrector.next_command()
-    corrector.add_run(path_errors(make_run(first, noise_m=2e-5, seed=3, burst_at_s=6.0,
-                                           spike_m=5e-4)))
-    corrector.next_command()
-    # Stepped back at the third correction: half the settled gain, not half of 1.
-    assert 'stepping back' in corrector.note and corrector.gain == pytest.approx(0.35)
-
-
 def spike_mask(spike_now_s, spike_before_s):
     command = lambda t: demand_at(PATH, t)  # noqa: E731
     now = path_errors(make_run(command, noise_m=2e-5, seed=1, spike_at_s=spike_now_s))
@@ -333,8 +305,7 @@ def learn_through_a_disturbance(spike_threshold, **disturbance):
     per sample, x and y) that command lies from the command the disturbed run was made
     with and from the one the same run without the disturbance would have given.
     """
-    corrector = IterativeCorrector(gain=1.0, later_gain=1.0, settled_gain=1.0,
-                                   spike_threshold=spike_threshold)
+    corrector = IterativeCorrector(gain=1.0, later_gain=1.0, spike_threshold=spike_threshold)
     command = lambda t: demand_at(PATH, t)  # noqa: E731
     for seed in (1, 2):
         corrector.add_run(path_errors(make_run(command, noise_m=2e-5, seed=seed)))

@@ -6,17 +6,16 @@ computes Eq. 7's error of each against the demand at the tracker's stamps and wr
 the next command ``c_{k+1} = c_k + gain * Q(p - e_k)`` as the CSV that
 ``trajectory_generator`` takes (``correction_file``). ``c_k`` is the command recorded in
 the latest bag. With several bags it decides as ``flexure-ctrl demo`` does: sharp errors
-a run did not share with the run before are not learned, the gain is ``--later-gain``
-for the second correction and ``--settled-gain`` from the third on, and it shrinks when
-a run comes out worse than the best (learning then goes on from the best run).
+a run did not share with the run before are not learned, the gain drops to
+``--later-gain`` after the first correction and shrinks when the error stops falling
+(learning then goes on from the best run).
 """
 
 import argparse
 from pathlib import Path
 
 from flexure_ctrl.core.correction import (DEFAULT_BRIDGE_MAX_S, DEFAULT_CUTOFF_HZ,
-                                          DEFAULT_LATER_GAIN, DEFAULT_SETTLED_GAIN,
-                                          DEFAULT_SPIKE_THRESHOLD,
+                                          DEFAULT_LATER_GAIN, DEFAULT_SPIKE_THRESHOLD,
                                           IterativeCorrector, path_errors)
 from flexure_ctrl.core.errors import CorrectionError
 from flexure_ctrl.core.learning import PathLearning
@@ -29,12 +28,9 @@ def add_learning_arguments(parser: argparse.ArgumentParser) -> None:
                         help='learning gain gamma of the first correction, in (0, 2]; 1 is '
                              "the paper's Eq. 8 (default: %(default)s)")
     parser.add_argument('--later-gain', type=float, default=DEFAULT_LATER_GAIN,
-                        help='learning gain of the second correction, in (0, 2] '
+                        help='learning gain of the later corrections, in (0, 2]: below 1 an '
+                             'unrepeatable error of one run is not mirrored into the next '
                              '(default: %(default)s)')
-    parser.add_argument('--settled-gain', type=float, default=DEFAULT_SETTLED_GAIN,
-                        help='learning gain from the third correction on, in (0, 2]: below '
-                             "1 less of one run's unrepeatable error is mirrored into the "
-                             'next (default: %(default)s)')
     parser.add_argument('--cutoff-hz', type=float, default=DEFAULT_CUTOFF_HZ, metavar='HZ',
                         help='cutoff of the zero-phase low-pass Q applied to the error; 0: '
                              'no filter (default: %(default)s)')
@@ -75,7 +71,6 @@ def run(arguments: argparse.Namespace) -> int:
     if not arguments.spike_threshold >= 0.0:
         raise CorrectionError('--spike-threshold must be 0 (learn everything) or more')
     corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
-                                   settled_gain=arguments.settled_gain,
                                    cutoff_hz=arguments.cutoff_hz or None,
                                    spike_threshold=arguments.spike_threshold or None)
     # As the demo decides: the loops of each run after the first took up the backlash

@@ -301,7 +301,6 @@ def run(arguments: argparse.Namespace) -> int:
     stamp = datetime.datetime.now().strftime('%Y%m%d_%H%M%S')
     # Bad gains are refused here, before the rig starts.
     corrector = IterativeCorrector(gain=arguments.gain, later_gain=arguments.later_gain,
-                                   settled_gain=arguments.settled_gain,
                                    cutoff_hz=arguments.cutoff_hz,
                                    spike_threshold=arguments.spike_threshold or None)
     learning = PathLearning(corrector, arguments.take_up_backlash)
