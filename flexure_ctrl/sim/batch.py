@@ -9,8 +9,8 @@ steps the same parts on a simulated clock instead:
 * the plan, solved and checked whole from the command path (:func:`plan_path`, the
   generator's own code, 100 Hz);
 * each actuator's loop cycle (:class:`ActuatorController` and :class:`ProportionalLoop`,
-  the loop node's own code) at the loop's rate, reading the position the drive last sent
-  (a TPDO every ``tpdo_period_s``) with its age;
+  the loop node's own code) at the loop's rate, reading the position the drive sent on
+  the loop's last SYNC (TPDO1 on SYNC, the loops' ``drive.tpdo_timing``), one cycle old;
 * the drives' lead screws (:class:`LeadScrewActuator`: velocity lag, backlash, pot noise,
   quantisation) and the true arm (:class:`SimulatedArm`: sag, joint offsets and scales)
   at the simulator's physics rate, the velocity command applied one physics step late;
@@ -135,9 +135,7 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
     plan = plan_path(command, solver, PLAN_RATE_HZ)
     rng = np.random.default_rng(seed)
     screw = screw_parameters(config)
-    drives = config['drives']
     physics_s = 1.0 / float(config['physics_rate_hz'])
-    tpdo_s = float(drives['tpdo_period_s'])
     start = plan.positions_m[0] if start_m is None else start_m
     actuators = [LeadScrewActuator(screw, np.random.default_rng(rng.integers(2**32)),
                                    initial_position_m=float(position),
@@ -161,7 +159,6 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
     t_s = -LEAD_IN_S + physics_s * np.arange(steps + 1)
     rods = np.empty((steps + 1, 2))
     loop_every = max(1, int(round(1.0 / (loop.rate_hz * physics_s))))
-    tpdo_every = max(1, int(round(tpdo_s / physics_s)))
     loop_rows = []
     readings = [(a.pot_reading_m(), t_s[0]) for a in actuators]
     velocities = [0.0, 0.0]
@@ -169,8 +166,6 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
     for step in range(steps + 1):
         now_s = float(t_s[step])
         rods[step] = [a.rod_position_m for a in actuators]
-        if step % tpdo_every == 0:
-            readings = [(a.pot_reading_m(), now_s) for a in actuators]
         if step % loop_every == 0:
             now_ns = _PATH_START_NS + int(round(now_s * NS_PER_S))
             row = [now_s]
@@ -181,6 +176,9 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                 velocities[index] = controller.step(now_ns, reading_m, age_ns)
                 row += [controller.setpoint_m, reading_m, velocities[index]]
             loop_rows.append(row)
+            # The loop's SYNC after its commands: each drive samples its position now,
+            # and the next cycle reads it.
+            readings = [(a.pot_reading_m(), now_s) for a in actuators]
         for index, actuator in enumerate(actuators):
             actuator.step(applied[index], physics_s)
         applied = list(velocities)
