@@ -278,6 +278,25 @@ def test_corrections_after_the_first_use_the_later_gain():
     assert np.allclose(later.points_m, expected.points_m, atol=1e-12)
 
 
+def test_the_lead_in_approach_is_not_learned_into_the_start_of_the_path():
+    # A plant that realises the path exactly, but whose lead-in comes to the first point
+    # from 6 mm below it in y, as the loops' approach does (0.35 mm of an actuator).
+    run = make_run(lambda t: demand_at(PATH, t))
+    tracked_s = (run.tracked_t_ns - T0_NS) / 1e9
+    approach = np.clip(-tracked_s / LEAD_S, 0.0, 1.0)
+    tracked = demand_at(PATH, tracked_s)
+    tracked[:, 1] -= 6e-3 * approach * approach * (3.0 - 2.0 * approach)
+    approached = RecordedRun(run.path_start_ns, run.duration_s, run.demand_t_ns,
+                             run.demand_m, run.command_m, run.tracked_t_ns, tracked)
+    errors = path_errors(approached)
+    assert errors.max_abs_error_m().max() < 1e-5
+    command = corrected_command(errors)
+    update = command.points_m - demand_at(PATH, command.t_s)
+    # The path has no error, so the next command is the path itself: the lead-in's 6 mm
+    # excursion would otherwise come out of Q (1 Hz) as 0.1 mm at path time 0.
+    assert np.abs(update).max() < 1e-6
+
+
 def spike_mask(spike_now_s, spike_before_s):
     command = lambda t: demand_at(PATH, t)  # noqa: E731
     now = path_errors(make_run(command, noise_m=2e-5, seed=1, spike_at_s=spike_now_s))

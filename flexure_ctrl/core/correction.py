@@ -128,8 +128,20 @@ class PathErrors:
         return (self.grid_t_s >= -tolerance_s) & (self.grid_t_s <= self.duration_s + tolerance_s)
 
     def smooth_error_m(self, cutoff_hz: float = DEFAULT_CUTOFF_HZ) -> np.ndarray:
-        """Return the grid error through the zero-phase low-pass ``Q`` ``(K, 2)`` (m)."""
-        return zero_phase_lowpass(self.grid_error_m, self.grid_rate_hz, cutoff_hz)
+        """
+        Return the grid error through the zero-phase low-pass ``Q`` ``(K, 2)`` (m).
+
+        Outside the path the error is held at its values at the path's ends before it
+        is filtered: the lead-in is the loops' hold and approach to the first point (an
+        excursion of the approach's length, on purpose), not an error of the path, and
+        ``Q`` would spread it over the path's first half-second.
+        """
+        error = self.grid_error_m.copy()
+        on_path = np.flatnonzero(self.on_path())
+        if on_path.size:
+            error[:on_path[0]] = error[on_path[0]]
+            error[on_path[-1] + 1:] = error[on_path[-1]]
+        return zero_phase_lowpass(error, self.grid_rate_hz, cutoff_hz)
 
     def noise_m(self, cutoff_hz: float = DEFAULT_CUTOFF_HZ) -> np.ndarray:
         """
