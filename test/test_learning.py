@@ -64,6 +64,10 @@ def test_the_reversal_error_a_1_hz_q_leaves_is_removed_by_taking_up_the_backlash
     assert taken[1:] == pytest.approx(BACKLASH_M * 1e3, rel=0.25)
     assert all(row['backlash_taken_up_mm'] == [0.0, 0.0]
                for row in without_summary['iterations'])
+    # So is the drives' 80 ms lag, which the loops feed forward from the second run on.
+    lags = np.array([row['lag_fed_forward_ms'] for row in with_summary['iterations']])
+    assert np.all(lags[0] == 0.0)
+    assert lags[1:] == pytest.approx(PLANT['drives.lag_s'] * 1e3, rel=0.2)
 
 
 def test_a_run_whose_take_up_changes_has_its_reversals_bridged_not_learned(design):
@@ -82,6 +86,12 @@ def test_a_run_whose_take_up_changes_has_its_reversals_bridged_not_learned(desig
     assert 3 * 2 * REVERSAL_HALF_WIDTH_S - 0.2 < first.spike_seconds() < 4 * 2 * 0.45
     assert all(value > 1e-4 for value in learning.take_up_m.values())
     assert any('taken up next run' in message for message in learning.messages)
+    # What correct prints for up: each loop's take-up and lag, as the demo sets them.
+    arguments = learning.take_up_arguments()
+    for name in ACTUATOR_NAMES:
+        assert f'--ros-arg={name}:backlash_m:={learning.take_up_m[name]:.9f}' in arguments
+        assert learning.lag_s[name] == pytest.approx(PLANT['drives.lag_s'], rel=0.2)
+        assert f'--ros-arg={name}:lag_feedforward_s:={learning.lag_s[name]:.9f}' in arguments
     # The next run is made with that take-up: it stays, and nothing is bridged.
     again = simulate_run(design, config, SinePath(), seed=2, take_ups=tuple(
         BacklashTakeUp(learning.take_up_m[name]) for name in ACTUATOR_NAMES))

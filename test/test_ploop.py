@@ -3,7 +3,7 @@
 import math
 
 from flexure_ctrl.core.ploop import ActuatorController, BacklashTakeUp, LoopConfigError, LoopLimits
-from flexure_ctrl.core.ploop import ProportionalLoop
+from flexure_ctrl.core.ploop import ProportionalLoop, TAKE_UP_LEAD
 from flexure_ctrl.core.run import Following, JointSampler, RunMessage, RunState
 import numpy as np
 import pytest
@@ -481,3 +481,66 @@ def test_the_approach_starts_every_run_with_the_nut_on_the_side_the_path_goes():
     approached = [_first_second_errors_m(3.5e-4, from_above) for from_above in (True, False)]
     assert np.max(np.abs(approached[0] - approached[1])) < 1e-5
     assert np.max(np.abs(approached)) < 3e-5
+
+
+def test_a_lagging_drive_follows_an_accelerating_plan_once_its_lag_is_fed_forward():
+    # A plan that accelerates at a constant 2 mm/s^2 from rest; a drive whose speed
+    # follows its command with a 80 ms first-order lag. With the velocity fed forward the
+    # loop trails by lag * a / gain (8 um here); with the lag fed forward as well, by
+    # nothing once the start has settled.
+    lag_s, accel_m_s2, gain_per_s = 0.08, 2e-3, 20.0
+    times = np.arange(0.0, 3.0 + 1e-9, 0.01)
+
+    def trailing_m(lag_feedforward_s):
+        controller = ActuatorController(ProportionalLoop(gain_per_s, 1.0, LIMITS), 1.0, 0.0,
+                                        1.0, lag_feedforward_s=lag_feedforward_s)
+        controller.load_trajectory(JointSampler(times, 0.5 * accel_m_s2 * times ** 2,
+                                                accel_m_s2 * times), 0)
+        controller.on_run_message(RunMessage(RunState.RUNNING, 0), 0)
+        position_m = speed_m_s = 0.0
+        dt_s = 0.002
+        errors = []
+        for step in range(int(2.5 / dt_s)):
+            now_ns = int(round(step * dt_s * 1e9))
+            controller.on_run_message(RunMessage(RunState.RUNNING, 0), now_ns)
+            command = controller.step(now_ns, position_m)
+            # Exact first-order lag of the speed over the step.
+            decay = math.exp(-dt_s / lag_s)
+            position_m += command * dt_s + (speed_m_s - command) * lag_s * (1.0 - decay)
+            speed_m_s = command + (speed_m_s - command) * decay
+            t_s = (step + 1) * dt_s
+            if t_s > 1.5:
+                errors.append(0.5 * accel_m_s2 * t_s ** 2 - position_m)
+        return np.array(errors)
+
+    without = trailing_m(0.0)
+    assert without == pytest.approx(lag_s * accel_m_s2 / gain_per_s, rel=0.05)
+    assert np.max(np.abs(trailing_m(lag_s))) < 0.02 * lag_s * accel_m_s2 / gain_per_s
+    with pytest.raises(LoopConfigError, match='lag_feedforward_s'):
+        ActuatorController(ProportionalLoop(gain_per_s, 1.0, LIMITS), 1.0, 0.0, 1.0,
+                           lag_feedforward_s=-0.01)
+
+
+def test_the_take_up_starts_half_the_fed_forward_lag_ahead_of_a_reversal():
+    # Down until 1 s, up after: the take-up's pulse starts at 1 s less TAKE_UP_LEAD lags.
+    times = np.arange(0.0, 2.0 + 1e-9, 0.01)
+    positions = 1e-3 * (times - 1.0) ** 2
+    velocities = 2e-3 * (times - 1.0)
+
+    def pulse_start_s(lag_feedforward_s):
+        controller = ActuatorController(ProportionalLoop(0.0, 0.0, LIMITS), 1.0, 0.0, 1.0,
+                                        take_up=BacklashTakeUp(1e-4),
+                                        lag_feedforward_s=lag_feedforward_s)
+        controller.load_trajectory(JointSampler(times, positions, velocities), 0)
+        controller.on_run_message(RunMessage(RunState.RUNNING, 0), 0)
+        for step in range(1000):
+            now_ns = step * 2 * MS
+            controller.on_run_message(RunMessage(RunState.RUNNING, 0), now_ns)
+            # No gain and no velocity feedforward: what moves is the take-up alone, bar
+            # the lag's feedforward (2e-3 m/s^2 times the lag).
+            if controller.step(now_ns, 0.0) > 1e-3:
+                return step * 0.002
+        return None
+
+    assert pulse_start_s(0.0) == pytest.approx(1.0, abs=0.0025)
+    assert pulse_start_s(0.1) == pytest.approx(1.0 - TAKE_UP_LEAD * 0.1, abs=0.0025)

@@ -233,3 +233,23 @@ def test_strokes_start_at_the_turning_points_and_ignore_smaller_wiggles():
     assert len(JointSampler(times, positions, np.zeros_like(times)).strokes(1e-6)[0]) > 2
     assert JointSampler(times, np.zeros_like(times), np.zeros_like(times)).strokes(5e-5) == (
         (), ())
+
+
+def test_the_sampler_gives_the_acceleration_its_velocity_changes_at():
+    # A cosine planned every 10 ms: the Hermite's second derivative against the closed
+    # form, and the approach's smoothstep against its velocity's own slope.
+    omega = 2.0 * math.pi / 14.0
+    times = np.arange(0.0, 14.0 + 1e-9, 0.01)
+    sampler = JointSampler(times, 0.012 * np.cos(omega * times),
+                           -0.012 * omega * np.sin(omega * times), approach_m=3.5e-4,
+                           approach_s=1.2)
+    t_s = np.linspace(0.003, 13.997, 3001)
+    accelerations = np.array([sampler.acceleration(t) for t in t_s])
+    exact = -0.012 * omega ** 2 * np.cos(omega * t_s)
+    assert np.max(np.abs(accelerations - exact)) < 0.01 * 0.012 * omega ** 2
+    h = 1e-5
+    for t in (-1.15, -0.9, -0.6, -0.3, -0.05):
+        slope = (sampler.sample(t + h)[1] - sampler.sample(t - h)[1]) / (2 * h)
+        assert sampler.acceleration(t) == pytest.approx(slope, rel=1e-4, abs=1e-9)
+    # Held before the approach and after the end.
+    assert sampler.acceleration(-2.0) == 0.0 and sampler.acceleration(15.0) == 0.0

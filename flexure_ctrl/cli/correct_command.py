@@ -40,9 +40,10 @@ def add_learning_arguments(parser: argparse.ArgumentParser) -> None:
                              'before did not have, this many robust standard deviations out; '
                              '0 learns everything (default: %(default)s)')
     parser.add_argument('--no-take-up', dest='take_up_backlash', action='store_false',
-                        help="do not measure the drives' backlash from the loops' recorded "
-                             'states, nor have the loops take it up at reversals (by default '
-                             'they do, from the second run on)')
+                        help="do not measure the drives' backlash and lag from the loops' "
+                             'recorded states, nor have the loops take the backlash up at '
+                             'reversals and feed the lag forward (by default they do, from '
+                             'the second run on)')
 
 
 def add_parser(commands) -> None:
@@ -100,6 +101,7 @@ def run(arguments: argparse.Namespace) -> int:
     print(f'wrote {out}: gain {corrector.gain:g}, ' + (
         f'Q cutoff {arguments.cutoff_hz:g} Hz' if arguments.cutoff_hz else 'no filter'))
     if arguments.take_up_backlash:
-        print('run it with the loops taking up the backlash measured: flexure-ctrl up '
+        print('run it with the loops taking up the backlash and feeding forward the lag '
+              'measured: flexure-ctrl up '
               f'--design DESIGN --correction {out} ' + ' '.join(learning.take_up_arguments()))
     return 0

@@ -199,10 +199,11 @@ class _Operator:
     def set_correction_file(self, path: str) -> None:
         self._set_parameter(TRAJECTORY_GENERATOR, 'correction_file', path)
 
-    def set_backlash(self, take_up_m: dict) -> None:
-        """Set each loop's backlash take-up (m) for the next run."""
-        for actuator, value in take_up_m.items():
-            self._set_parameter(actuator, 'backlash_m', float(value))
+    def set_loop_parameters(self, parameters: dict) -> None:
+        """Set each loop's learned parameters ({actuator: {name: value}}) for the next run."""
+        for actuator, values in parameters.items():
+            for name, value in values.items():
+                self._set_parameter(actuator, name, float(value))
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -329,6 +330,7 @@ def run(arguments: argparse.Namespace) -> int:
             row = report_command.iteration_summary(index, bag, errors)
             row['backlash_taken_up_mm'] = [1e3 * learning.take_up_m[name]
                                            for name in ACTUATOR_NAMES]
+            row['lag_fed_forward_ms'] = [1e3 * learning.lag_s[name] for name in ACTUATOR_NAMES]
             learning.add_run(errors, load_actuator_states(bag, run_of_bag))
             rows.append(row)
             progress.line(f'[demo] iteration {index}: max |e_x| {row["max_abs_error_x_mm"]:.3f}'
@@ -353,7 +355,7 @@ def run(arguments: argparse.Namespace) -> int:
             row['note'] = corrector.note
             command_file = command.write_csv(out / f'command_{index + 1}.csv')
             operator.set_correction_file(str(command_file.resolve()))
-            operator.set_backlash(learning.take_up_m)
+            operator.set_loop_parameters(learning.loop_parameters())
         if arguments.repeat_last:
             # The command of the last run, run again: what differs is what does not repeat.
             index = len(rows)

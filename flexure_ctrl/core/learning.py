@@ -10,7 +10,11 @@ correct``:
   loop's own readings and commands around the actuator's reversals), which the loops
   take up from the next run on (their ``backlash_m``). A reversal is where a lead screw's
   dead band leaves a sharp error that the path's 1 Hz learning cannot follow; carried
-  across by the loop, it is gone at its cause.
+  across by the loop, it is gone at its cause;
+* each drive's velocity lag, fitted with the backlash, which the loops feed forward from
+  the next run on (their ``lag_feedforward_s``: the plan's acceleration times the lag).
+  Where the plan's acceleration steps (the path leaving the lead-in's hold) a lagging
+  drive rings for a second at the loop's own frequency, faster than the 1 Hz learning.
 
 When the take-up the next run will have differs from the one the run had, the run's
 error around the reversals was the backlash's, which the take-up changes: it is bridged,
@@ -63,6 +67,8 @@ class PathLearning:
         self.backlash = BacklashLearner() if take_up_backlash else None
         self.take_up_m: Dict[str, float] = {name: float((take_up_m or {}).get(name, 0.0))
                                             for name in ACTUATOR_NAMES}
+        # Each drive's lag (s) the loops feed forward: the median of its runs' fits.
+        self.lag_s: Dict[str, float] = dict.fromkeys(ACTUATOR_NAMES, 0.0)
         self.messages: List[str] = []
 
     def add_run(self, errors: PathErrors, cycles: Mapping[str, LoopCycles]) -> None:
@@ -88,10 +94,13 @@ class PathLearning:
                     self.messages.append(f'{name}: no clean reversal: backlash not measured')
                     continue
                 used, learned = self.take_up_m[name], self.backlash.backlash_m(name)
+                self.lag_s[name] = float(np.median(
+                    [fit.lag_s for fit in self.backlash.estimates[name]]))
                 self.messages.append(
                     f'{name}: backlash {estimate.backlash_m * 1e3:.3f} mm at '
                     f'{estimate.reversals} reversal(s), taken up next run: '
-                    f'{learned * 1e3:.3f} mm')
+                    f'{learned * 1e3:.3f} mm; drive lag {estimate.lag_s * 1e3:.0f} ms, fed '
+                    f'forward next run: {self.lag_s[name] * 1e3:.0f} ms')
                 if abs(learned - used) > max(TAKE_UP_CHANGE_M, TAKE_UP_CHANGE_FRACTION * learned):
                     # Where each stroke of the path starts (its first move included: the
                     # nut comes from the lead-in's side) the take-up acts.
@@ -131,7 +140,13 @@ class PathLearning:
         """Return what the path's learning last decided, if anything but the usual."""
         return self.corrector.note
 
+    def loop_parameters(self) -> Dict[str, Dict[str, float]]:
+        """Return each loop's learned parameters for the next run (name: value, SI)."""
+        return {name: {'backlash_m': self.take_up_m[name],
+                       'lag_feedforward_s': self.lag_s[name]} for name in ACTUATOR_NAMES}
+
     def take_up_arguments(self) -> Sequence[str]:
-        """Return the ``up`` options that set the loops' take-up to :attr:`take_up_m`."""
-        return [f'--ros-arg={name}:backlash_m:={value:.9f}'
-                for name, value in self.take_up_m.items()]
+        """Return the ``up`` options that set the loops' :meth:`loop_parameters`."""
+        return [f'--ros-arg={name}:{key}:={value:.9f}'
+                for name, values in self.loop_parameters().items()
+                for key, value in values.items()]

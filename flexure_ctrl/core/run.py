@@ -245,6 +245,34 @@ class JointSampler:
                     + (3.0 * s2 - 2.0 * s) * m1) / h
         return position, velocity
 
+    def acceleration(self, t_s: float) -> float:
+        """
+        Return the rate of change of the joint's velocity (m/s^2) at ``t_s`` s of path time.
+
+        The second derivative of what :meth:`sample` gives (the approach's smoothstep,
+        the cubic Hermite between points); 0 where the joint holds.
+        """
+        times = self._times
+        if t_s <= times[0]:
+            ahead_s = times[0] - t_s
+            if ahead_s >= self._approach_s or not self._approach_s:
+                return 0.0
+            u = ahead_s / self._approach_s
+            return 6.0 * self._approach_m * (2.0 * u - 1.0) / (self._approach_s ** 2)
+        if t_s >= times[-1]:
+            return 0.0
+        index = self._index
+        if not times[index] <= t_s < times[index + 1]:
+            index = bisect.bisect_right(times, t_s) - 1
+            self._index = index
+        t0 = times[index]
+        h = times[index + 1] - t0
+        s = (t_s - t0) / h
+        p0, p1 = self._positions[index], self._positions[index + 1]
+        m0, m1 = self._velocities[index] * h, self._velocities[index + 1] * h
+        return ((12.0 * s - 6.0) * (p0 - p1) + (6.0 * s - 4.0) * m0
+                + (6.0 * s - 2.0) * m1) / (h * h)
+
     def strokes(self, min_travel_m: float) -> Tuple[Tuple[float, ...], Tuple[int, ...]]:
         """
         Return the joint's strokes: when each starts (s) and which way it goes (+1, -1).

@@ -112,7 +112,8 @@ class ActuatorLoop(LifecycleNode):
         self.controller = ActuatorController(
             self.loop, p.watchdog_timeout_s, p.setpoint_hold_max_age_s, p.path_tolerance_m,
             p.compensate_reading_age,
-            take_up=BacklashTakeUp(p.backlash_m, p.backlash_take_up_s))
+            take_up=BacklashTakeUp(p.backlash_m, p.backlash_take_up_s),
+            lag_feedforward_s=p.lag_feedforward_s)
         self.drive = ActuatorDrive(self.controller)
         description = p.drive_description(ActuatorLoopConfigError)
         self.link = DriveLink(p.can_interface, p.can_channel, p.can_host, p.can_port,
@@ -189,6 +190,10 @@ class ActuatorLoop(LifecycleNode):
                 with self._lock:
                     self.controller.take_up.backlash_m = float(parameter.value)
                 self.get_logger().info(f'backlash take-up set to {parameter.value * 1e3:.3f} mm')
+            elif parameter.name == 'lag_feedforward_s':
+                with self._lock:
+                    self.controller.lag_feedforward_s = float(parameter.value)
+                self.get_logger().info(f'lag fed forward set to {parameter.value * 1e3:.1f} ms')
 
     def _loop_progress(self) -> Optional[int]:
         """Return the loop thread's cycle count (for the beat); None while it is not running."""

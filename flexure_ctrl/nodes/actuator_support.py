@@ -55,6 +55,10 @@ _RANGED = (
      'run by run); 0: off; may change live, for the next run', 0.0, 0.005, True),
     ('backlash_take_up_s', 0.02, 'duration (s) of the pulse that takes the backlash up',
      0.001, 0.5, False),
+    ('lag_feedforward_s', 0.0, "the drive's velocity lag (s): during a run the plan's "
+     'acceleration times it is fed forward with its velocity, and the take-up starts half '
+     'of it ahead of a reversal (flexure-ctrl demo and correct measure it with the '
+     'backlash); 0: off; may change live, for the next run', 0.0, 0.5, True),
     ('approach_m', DEFAULT_APPROACH_M, "a run's lead-in ends by coming to the first point "
      'from this far (m) behind it, the way the path first goes, so that each run starts '
      'with the nut on the same side of its backlash; more than the backlash; 0: the '
@@ -151,6 +155,7 @@ class LoopParameters:
     max_speed_m_s: float
     backlash_m: float
     backlash_take_up_s: float
+    lag_feedforward_s: float
     approach_m: float
     approach_s: float
     watchdog_timeout_s: float

@@ -111,8 +111,8 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
                  loop: LoopSettings = LoopSettings(),
                  start_m: Optional[Tuple[float, float]] = None,
                  start_nut_offset_m: Tuple[float, float] = (0.0, 0.0),
-                 take_ups: Optional[Tuple[BacklashTakeUp, BacklashTakeUp]] = None
-                 ) -> SimulatedRun:
+                 take_ups: Optional[Tuple[BacklashTakeUp, BacklashTakeUp]] = None,
+                 lags_s: Tuple[float, float] = (0.0, 0.0)) -> SimulatedRun:
     """
     Run ``command`` (the demand when None) once on the simulated rig of ``config``.
 
@@ -128,6 +128,7 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
         (m; 0: the middle).
     :param take_ups: each loop's backlash take-up, kept from run to run as a loop keeps
         it (it knows the nut's side); None: none.
+    :param lags_s: each loop's ``lag_feedforward_s`` (s).
     :raises flexure_ctrl.core.run.PlanError: the command path cannot be planned.
     """
     command = demand if command is None else command
@@ -144,12 +145,12 @@ def simulate_run(design: Design, config: dict, demand: Trajectory,
     limits = LoopLimits(loop.max_speed_m_s, design.stroke_limit_m, loop.max_accel_m_s2)
     controllers = []
     take_ups = take_ups or (BacklashTakeUp(0.0), BacklashTakeUp(0.0))
-    for name, take_up in zip(ACTUATOR_NAMES, take_ups):
+    for name, take_up, lag_s in zip(ACTUATOR_NAMES, take_ups, lags_s):
         controller = ActuatorController(ProportionalLoop(loop.gain_per_s,
                                                          loop.velocity_feedforward, limits),
                                         watchdog_timeout_s=1.0, stream_hold_max_age_s=0.0,
                                         path_tolerance_m=1.0,
-                                        take_up=take_up)
+                                        take_up=take_up, lag_feedforward_s=lag_s)
         controller.load_trajectory(plan.sampler(name, loop.approach_m, loop.approach_s,
                                                 design.stroke_limit_m), _PATH_START_NS)
         controller.on_run_message(RunMessage(RunState.RUNNING, _PATH_START_NS), 0)
@@ -238,12 +239,15 @@ def learning_series(design: Design, config: dict, corrector, iterations: int = 3
     start_m, nut_offset_m = (0.0, 0.0), (0.0, 0.0)
     take_ups = (BacklashTakeUp(0.0), BacklashTakeUp(0.0))
     for index in range(iterations + 2):
-        take_up_m = tuple(learning.take_up_m[name] for name in ACTUATOR_NAMES)
+        if index <= iterations:
+            # The repeat runs the last command as it ran: the same take-up and lag.
+            take_up_m = tuple(learning.take_up_m[name] for name in ACTUATOR_NAMES)
+            lags_s = tuple(learning.lag_s[name] for name in ACTUATOR_NAMES)
         for take_up, value in zip(take_ups, take_up_m):
             take_up.backlash_m = value
         simulated = simulate_run(design, config, demand, command, seed=seed * 1000 + index,
                                  start_m=start_m, start_nut_offset_m=nut_offset_m,
-                                 take_ups=take_ups)
+                                 take_ups=take_ups, lags_s=lags_s)
         start_m, nut_offset_m = simulated.end_m, simulated.end_nut_offset_m
         errors = path_errors(simulated.run)
         if index > iterations:
@@ -254,6 +258,7 @@ def learning_series(design: Design, config: dict, corrector, iterations: int = 3
                                   for column, name in enumerate(ACTUATOR_NAMES)})
         rows.append(iteration_summary(index, Path(f'simulated_{index}'), errors))
         rows[-1]['backlash_taken_up_mm'] = [1e3 * value for value in take_up_m]
+        rows[-1]['lag_fed_forward_ms'] = [1e3 * value for value in lags_s]
         if index < iterations:
             learned = learning.next_command()
             rows[-1]['note'] = learning.note
