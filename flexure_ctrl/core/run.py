@@ -226,6 +226,24 @@ class JointSampler:
                     6.0 * self._approach_m * u * (1.0 - u) / self._approach_s)
         if t_s >= times[-1]:
             return self._positions[-1], 0.0 if t_s > times[-1] else self._velocities[-1]
+        s, h, p0, p1, m0, m1 = self._segment(t_s)
+        s2 = s * s
+        s3 = s2 * s
+        position = ((2.0 * s3 - 3.0 * s2 + 1.0) * p0 + (s3 - 2.0 * s2 + s) * m0
+                    + (-2.0 * s3 + 3.0 * s2) * p1 + (s3 - s2) * m1)
+        velocity = ((6.0 * s2 - 6.0 * s) * (p0 - p1) + (3.0 * s2 - 4.0 * s + 1.0) * m0
+                    + (3.0 * s2 - 2.0 * s) * m1) / h
+        return position, velocity
+
+    def _segment(self, t_s: float) -> Tuple[float, float, float, float, float, float]:
+        """
+        Return the Hermite segment holding ``t_s`` (strictly inside the plan's span).
+
+        ``(s, h, p0, p1, m0, m1)``: the fraction of the segment at ``t_s``, its length (s),
+        its end positions (m) and end tangents scaled by ``h`` (m). The segment found last
+        is tried first, then the next (a loop samples forwards), then a bisection.
+        """
+        times = self._times
         index = self._index
         if not times[index] <= t_s < times[index + 1]:
             index += 1
@@ -234,16 +252,8 @@ class JointSampler:
             self._index = index
         t0 = times[index]
         h = times[index + 1] - t0
-        s = (t_s - t0) / h
-        p0, p1 = self._positions[index], self._positions[index + 1]
-        m0, m1 = self._velocities[index] * h, self._velocities[index + 1] * h
-        s2 = s * s
-        s3 = s2 * s
-        position = ((2.0 * s3 - 3.0 * s2 + 1.0) * p0 + (s3 - 2.0 * s2 + s) * m0
-                    + (-2.0 * s3 + 3.0 * s2) * p1 + (s3 - s2) * m1)
-        velocity = ((6.0 * s2 - 6.0 * s) * (p0 - p1) + (3.0 * s2 - 4.0 * s + 1.0) * m0
-                    + (3.0 * s2 - 2.0 * s) * m1) / h
-        return position, velocity
+        return ((t_s - t0) / h, h, self._positions[index], self._positions[index + 1],
+                self._velocities[index] * h, self._velocities[index + 1] * h)
 
     def acceleration(self, t_s: float) -> float:
         """
@@ -261,15 +271,7 @@ class JointSampler:
             return 6.0 * self._approach_m * (2.0 * u - 1.0) / (self._approach_s ** 2)
         if t_s >= times[-1]:
             return 0.0
-        index = self._index
-        if not times[index] <= t_s < times[index + 1]:
-            index = bisect.bisect_right(times, t_s) - 1
-            self._index = index
-        t0 = times[index]
-        h = times[index + 1] - t0
-        s = (t_s - t0) / h
-        p0, p1 = self._positions[index], self._positions[index + 1]
-        m0, m1 = self._velocities[index] * h, self._velocities[index + 1] * h
+        s, h, p0, p1, m0, m1 = self._segment(t_s)
         return ((12.0 * s - 6.0) * (p0 - p1) + (6.0 * s - 4.0) * m0
                 + (6.0 * s - 2.0) * m1) / (h * h)
 
