@@ -20,7 +20,8 @@ process:
   computed for, is paired with that cycle's RPDO (the loop's first at or after the
   stamp): the setpoint timing is the frame's time minus that instant.
 * after the run, a node publishes jog command points at 100 Hz on ``/flexure/command``,
-  jumping between two end points every 50 ms. The first RPDO after a jump whose target
+  jumping between two end points every 50 ms once both actuators have reached the
+  first. The first RPDO after a jump whose target
   velocity moves towards the new point is the CAN command that carries it. Latency = that
   frame's bus time minus the publication time (one system clock).
 
@@ -63,6 +64,8 @@ POINT_A = (1.015, 0.15)
 POINT_B = (1.015, 0.05)
 PUBLISH_PERIOD_S = 0.01
 PUBLICATIONS_PER_JUMP = 5
+SETTLE_TOLERANCE_M = 2e-4
+SETTLE_TIMEOUT_S = 10.0
 RATE_HZ = 500.0
 PERIOD_S = 20.0
 LEAD_IN_S = 2.0
@@ -202,12 +205,16 @@ def measure(arguments, pinned: bool) -> dict:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     states = []
+    positions = {}  # node id -> the latest reported actuator position (m)
+
+    def on_state(message: JointState, node_id: int) -> None:
+        states.append((node_id, message.header.stamp.sec * 10**9 + message.header.stamp.nanosec))
+        if message.position:
+            positions[node_id] = float(message.position[0])
+
     for actuator in ACTUATOR_NAMES:
-        node_id = int(actuator[-1])
-        node.create_subscription(
-            JointState, actuator_state_topic(actuator),
-            lambda m, n=node_id: states.append(
-                (n, m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)), 1000)
+        node.create_subscription(JointState, actuator_state_topic(actuator),
+                                 lambda m, n=int(actuator[-1]): on_state(m, n), 1000)
     publisher = node.create_publisher(PointStamped, COMMAND_TOPIC, 10)
     start = node.create_client(Trigger, START_SERVICE)
     spinner = threading.Thread(target=executor.spin, daemon=True)
@@ -251,7 +258,7 @@ def measure(arguments, pinned: bool) -> dict:
         figures['window_s'] = (window_end - window_start) * 1e-9
         figures['timing'] = setpoint_timing(frames, list(states))
         time.sleep(max(0.0, path_start_s + PERIOD_S + 1.0 - time.monotonic()))
-        figures['latency'] = jog_latency(arguments, publisher, sniffer)
+        figures['latency'] = jog_latency(arguments, publisher, sniffer, positions)
     finally:
         figures['problems'] = [line.rstrip() for line in system.lines
                                if 'ERROR' in line or 'WARN' in line or 'FATAL' in line]
@@ -294,22 +301,41 @@ def setpoint_timing(frames, states) -> np.ndarray:
     return np.asarray(delays)
 
 
-def jog_latency(arguments, publisher, sniffer) -> dict:
-    """Jump the jog command between two points; return each loop's latencies (s)."""
+def jog_latency(arguments, publisher, sniffer, positions) -> dict:
+    """
+    Jump the jog command between two points; return each loop's latencies (s).
+
+    The jumps start once both actuators have reached point A (their state streams'
+    positions within ``SETTLE_TOLERANCE_M``): an actuator still on its way from the path's
+    end could have A and B on the same side, and its first jump would time the travel.
+    """
     design = load_design(arguments.design)
     solution = InverseSolver.from_design(design).solve(np.array([POINT_A, POINT_B]))
     direction_to_b = np.sign(solution[1] - solution[0])  # per actuator
     message = PointStamped()
     message.header.frame_id = 'rig'
+
+    def publish(target) -> int:
+        now_ns = time.time_ns()
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(now_ns, 10**9)
+        message.point.x, message.point.y = target
+        publisher.publish(message)
+        return now_ns
+
+    deadline = time.monotonic() + SETTLE_TIMEOUT_S
+    while not all(abs(positions.get(n, np.inf) - solution[0][n - 1]) < SETTLE_TOLERANCE_M
+                  for n in (1, 2)):
+        if time.monotonic() > deadline:
+            raise SystemExit(f'the actuators did not reach point A within {SETTLE_TIMEOUT_S} s '
+                             f'(positions {positions}, targets {solution[0]})')
+        publish(POINT_A)
+        time.sleep(PUBLISH_PERIOD_S)
     jumps = []
     next_s = time.monotonic()
     for publication in range((arguments.toggles + 1) * PUBLICATIONS_PER_JUMP):
         toggle = publication // PUBLICATIONS_PER_JUMP
         target = POINT_B if toggle % 2 else POINT_A
-        now_ns = time.time_ns()
-        message.header.stamp.sec, message.header.stamp.nanosec = divmod(now_ns, 10**9)
-        message.point.x, message.point.y = target
-        publisher.publish(message)
+        now_ns = publish(target)
         if publication % PUBLICATIONS_PER_JUMP == 0 and toggle > 0:
             jumps.append((now_ns, 1.0 if toggle % 2 else -1.0))
         next_s += PUBLISH_PERIOD_S
