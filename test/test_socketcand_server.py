@@ -276,6 +276,27 @@ def test_a_clients_frames_count_as_pending_until_they_are_on_the_bus(server, con
     wait_for(lambda: not server.hub.input_pending(), TIMEOUT_S, 'nothing pending')
 
 
+def test_a_clients_frame_is_stamped_when_written_not_when_the_server_reads_it(
+        server, connect):
+    # The reader is held up on the first frame; the second waits in the socket meanwhile.
+    gate = threading.Event()
+    taken = []
+    member = connect('hub')
+    member.set_handler(lambda message: (taken.append(message), gate.wait(10)))
+    client = connect()
+    client.send(can.Message(arbitration_id=0x701, data=b'\x05', is_extended_id=False))
+    wait_for(lambda: len(taken) == 1, TIMEOUT_S, 'the first frame taken')
+    written_s = time.time()
+    client.send(can.Message(arbitration_id=0x702, data=b'\x05', is_extended_id=False))
+    held_s = 0.3
+    gate.wait(held_s)  # the held-up reader; the second frame is in the socket by now
+    released_s = time.time()
+    gate.set()
+    wait_for(lambda: len(taken) == 2, TIMEOUT_S, 'the second frame taken')
+    assert written_s <= taken[1].timestamp < released_s - held_s / 2
+    assert taken[0].timestamp <= taken[1].timestamp
+
+
 def test_a_client_that_stops_reading_is_dropped_and_holds_no_sender_up():
     with SocketcandServer(io_timeout_s=0.3) as server:
         stalled = RawClient(server.port, receive_buffer=4096)

@@ -124,11 +124,16 @@ class HubBus(can.BusABC):
         return self._hub
 
     def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
-        """Hand a copy of ``msg`` to every other member (never blocks)."""
+        """
+        Hand a copy of ``msg`` to every other member (never blocks).
+
+        The copy's timestamp is ``msg.timestamp`` when the sender set one (the time the
+        frame left its source, s since the epoch), otherwise the time of this call.
+        """
         if self._closed:
             raise can.CanOperationError('the hub bus is shut down')
         self._hub._deliver(can.Message(
-            timestamp=time.time(), arbitration_id=msg.arbitration_id,
+            timestamp=msg.timestamp or time.time(), arbitration_id=msg.arbitration_id,
             is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
             is_error_frame=msg.is_error_frame, dlc=msg.dlc, data=bytes(msg.data),
             is_rx=True, channel='hub', check=False), self)

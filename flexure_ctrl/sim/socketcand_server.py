@@ -47,6 +47,8 @@ import logging
 import select
 import socket
 import string
+import struct
+import sys
 import threading
 import time
 from typing import List, Optional, Set, Tuple
@@ -64,6 +66,11 @@ _TCP_QUICKACK = getattr(socket, 'TCP_QUICKACK', None)  # Linux only
 # Longest well-formed command: '< send 1FFFFFFF 8 ff ff ff ff ff ff ff ff >' is 42 bytes.
 _MAX_COMMAND_BYTES = 256
 _RECV_BYTES = 65536
+# Linux's SO_TIMESTAMPNS (not exported by the socket module): the kernel stamps each read
+# with the time the bytes reached the socket, a struct timespec of two 64-bit fields.
+_SO_TIMESTAMPNS = 35 if sys.platform == 'linux' else None
+_TIMESPEC = struct.Struct('qq')
+_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
 # Wake-up period of the accept and reader loops so that shutdown() is prompt.
 _POLL_S = 0.05
 # Kernel send buffer per client: about a second of this rig's busiest traffic (3,000
@@ -198,6 +205,7 @@ class _ClientConnection:
         self._sock = sock
         self.peer = peer
         self._buffer = bytearray()
+        self._chunk_stamp_s = 0.0  # kernel receive time of the last chunk (s), 0 if none
         self._handling = False  # from reading a chunk until its frames are on the bus
         self._stopping = threading.Event()
         # Bytes for the client not yet written (a full socket keeps them here, and a
@@ -238,7 +246,7 @@ class _ClientConnection:
     def _read_commands(self) -> List[List[str]]:
         """Block for data; return the complete ``< ... >`` commands received, as tokens."""
         try:
-            chunk = self._sock.recv(_RECV_BYTES)
+            chunk, ancillary, _, _ = self._sock.recvmsg(_RECV_BYTES, _ANCILLARY_BYTES)
         except BlockingIOError:
             return []  # select said readable, and nothing was there after all
         if not chunk:
@@ -248,6 +256,11 @@ class _ClientConnection:
             # without TCP_NODELAY (python-can's default) would otherwise hold its next
             # frame in Nagle's algorithm until our delayed ACK, up to 40 ms.
             self._sock.setsockopt(socket.IPPROTO_TCP, _TCP_QUICKACK, 1)
+        self._chunk_stamp_s = 0.0
+        for level, kind, data in ancillary:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+                self._chunk_stamp_s = seconds + nanoseconds * 1e-9
         self._buffer += chunk
         commands = []
         while True:
@@ -355,7 +368,11 @@ class _ClientConnection:
         # Any command after raw mode proves the client has read the last '< ok >'.
         self._start_forwarding()
         if tokens[:1] == ['send']:
-            self._bus.send(parse_send(tokens))
+            message = parse_send(tokens)
+            # The bus time of a frame is when the client wrote it, as a CAN controller
+            # stamps a frame when it is on the wire, not when this thread got to it.
+            message.timestamp = self._chunk_stamp_s
+            self._bus.send(message)
         elif tokens == ['echo']:
             self._queue_text('< echo >')
         elif self._bcm and tokens[:1] == ['add']:
@@ -535,6 +552,8 @@ class SocketcandServer(LoopbackServer):
                 _log.warning('socketcand server: accept failed: %s', error)
                 continue
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if _SO_TIMESTAMPNS is not None:
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SEND_BUFFER_BYTES)
             client = _ClientConnection(self, sock, f'{address[0]}:{address[1]}')
             with self._lock:
