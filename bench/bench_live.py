@@ -3,9 +3,10 @@
 Benchmark the live system on the simulated rig: CPU, loop timing and jog latency.
 
 For each of two set-ups it starts ``flexure-ctrl up --sim`` (simulator and all nodes as
-processes): (a) as ``up --sim`` runs by default, and (b) with both actuator loops' threads
-pinned to the last core under SCHED_FIFO (``cpu_affinity``, ``realtime_priority``) and
-every other process of the system, this one included, on the others. Then, from this
+processes): (a) as ``up --sim`` runs by default (``config/sim.yaml``: the loop threads
+under SCHED_FIFO on any core), and (b) with both actuator loops' threads pinned to the
+last core under SCHED_FIFO (``cpu_affinity``, ``realtime_priority``) and every other
+process of the system, this one included, on the others. Then, from this
 process:
 
 * a run of the path (``/trajectory_generator/start``). During it, the CPU of each process
@@ -13,8 +14,8 @@ process:
   ``recorder`` (every run topic, both 500 Hz actuator states included) has subscribed,
   over a second window with it; as % of one core.
 * a CAN sniffer (python-can ``socketcand`` client on the simulated bus) collects every
-  RPDO the two loops send, with the time the bus server read it off the loop's socket
-  (the frame's timestamp: the moment it reached the "bus"). Their spacing gives each
+  RPDO the two loops send, with the time the kernel received it on the bus server's
+  socket from the loop (the frame's timestamp: the moment it reached the "bus"). Their spacing gives each
   loop's period, the jitter is ``|period - 1/rate|``. Each state message of a loop (on
   every n-th cycle, ``state_rate_hz``), stamped with the instant its cycle's velocity was
   computed for, is paired with that cycle's RPDO (the loop's first at or after the
