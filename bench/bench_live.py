@@ -15,10 +15,10 @@ process:
   over a second window with it; as % of one core.
 * a CAN sniffer (python-can ``socketcand`` client on the simulated bus) collects every
   RPDO the two loops send, with the time the kernel received it on the bus server's
-  socket from the loop (the frame's timestamp: the moment it reached the "bus"). Their spacing gives each
-  loop's period, the jitter is ``|period - 1/rate|``. Each state message of a loop (on
-  every n-th cycle, ``state_rate_hz``), stamped with the instant its cycle's velocity was
-  computed for, is paired with that cycle's RPDO (the loop's first at or after the
+  socket from the loop (the frame's timestamp: the moment it reached the "bus"). Their
+  spacing gives each loop's period, the jitter is ``|period - 1/rate|``. Each state
+  message of a loop (on every n-th cycle, ``state_rate_hz``), stamped with the instant
+  its cycle's velocity was computed for, is paired with that cycle's RPDO (the loop's first at or after the
   stamp): the setpoint timing is the frame's time minus that instant.
 * after the run, a node publishes jog command points at 100 Hz on ``/flexure/command``,
   jumping between two end points every 50 ms once both actuators have reached the
