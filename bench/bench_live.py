@@ -18,8 +18,9 @@ process:
   socket from the loop (the frame's timestamp: the moment it reached the "bus"). Their
   spacing gives each loop's period, the jitter is ``|period - 1/rate|``. Each state
   message of a loop (on every n-th cycle, ``state_rate_hz``), stamped with the instant
-  its cycle's velocity was computed for, is paired with that cycle's RPDO (the loop's first at or after the
-  stamp): the setpoint timing is the frame's time minus that instant.
+  its cycle's velocity was computed for, is paired with that cycle's RPDO (the loop's
+  first at or after the stamp): the setpoint timing is the frame's time minus that
+  instant.
 * after the run, a node publishes jog command points at 100 Hz on ``/flexure/command``,
   jumping between two end points every 50 ms once both actuators have reached the
   first. The first RPDO after a jump whose target
