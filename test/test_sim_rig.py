@@ -1,5 +1,7 @@
 """The simulated rig's true rod positions, as the tracker samples them between physics steps."""
 
+import socket
+import threading
 import time
 
 from flexure_ctrl.core.design import load_design
@@ -77,3 +79,18 @@ def test_a_moving_rod_is_extrapolated_along_its_own_velocity():
         assert all(0.9e-3 < ahead < 2e-3 for ahead in ahead_m), ahead_m
     finally:
         rig.shutdown()
+
+
+def test_the_started_rig_streams_the_tracker_at_its_rate_from_the_physics_thread():
+    config = load_sim_config(overrides={'tracker.rate_hz': 250.0})
+    with SimulatedRig(load_design('cfa'), config) as started:
+        assert not [t for t in threading.enumerate() if t.name.startswith('tracker-stream')]
+        with socket.create_connection(('127.0.0.1', started.tracker_port), timeout=5.0) as sock:
+            data = b''
+            while data.count(b'\n') < 101:
+                chunk = sock.recv(65536)
+                assert chunk, 'the simulated tracker closed the connection'
+                data += chunk
+    stamps_ns = [int(line.split(b',')[0]) for line in data.split(b'\n')[:101]]
+    mean_period_s = (stamps_ns[-1] - stamps_ns[0]) * 1e-9 / 100
+    assert mean_period_s == pytest.approx(1 / 250.0, rel=0.1)

@@ -389,3 +389,23 @@ def test_simulated_tracker_shutdown_is_idempotent_and_closes_clients():
     assert server.client_count == 0
     with pytest.raises(TrackerServerStateError):
         server.start()
+
+
+def test_a_caller_driven_tracker_samples_on_absolute_deadlines():
+    period_ns = 4_000_000  # 250 Hz
+    with TrackerServer(lambda now_ns: {'end': END_TRUTH_M}, rate_hz=250.0).start(
+            own_thread=False) as server:
+        assert not [t for t in server._threads if t.name.startswith('tracker-stream')]
+        with socket.create_connection(('127.0.0.1', server.port), timeout=TIMEOUT_S) as sock:
+            wait_for(lambda: server.client_count == 1, timeout_s=TIMEOUT_S,
+                     what='the client to be accepted')
+            start_ns = time.monotonic_ns()
+            assert server.stream_due(start_ns) == start_ns + period_ns  # the first sample
+            # Before its deadline nothing is sent; late, the next deadline stays on the
+            # grid (absolute deadlines keep the mean rate whatever the caller's delays).
+            assert server.stream_due(start_ns + period_ns // 2) == start_ns + period_ns
+            assert server.stream_due(start_ns + period_ns + 1_000_000) == \
+                start_ns + 2 * period_ns
+            assert server.samples_sent == 2
+            lines = read_lines(sock, 2)
+        assert [line.split(b',')[1] for line in lines] == [b'end', b'end']

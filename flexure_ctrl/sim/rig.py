@@ -184,7 +184,7 @@ class SimulatedRig:
         self._physics = threading.Thread(target=self._run_physics, name='sim-physics',
                                          daemon=True)
         self._physics.start()
-        self.tracker_server.start()
+        self.tracker_server.start(own_thread=False)  # streamed by the physics thread
         return self
 
     @property
@@ -196,19 +196,24 @@ class SimulatedRig:
         return self.tracker_server.port
 
     def _run_physics(self) -> None:
+        # The tracker's samples are taken in this thread too, between steps: at the
+        # default rates (1 kHz, 500 Hz) one wake-up serves both, where a thread each cost
+        # a wake-up each.
         # Absolute deadlines keep the mean rate exact however long one step takes.
         next_s = time.monotonic()
         last_s = next_s
         while not self._stop.is_set():
             now_s = time.monotonic()
-            self.step_physics(now_s, now_s - last_s)
-            last_s = now_s
-            next_s += self._period_s
-            delay_s = next_s - time.monotonic()
+            if now_s >= next_s:
+                self.step_physics(now_s, now_s - last_s)
+                last_s = now_s
+                next_s += self._period_s
+                if next_s < time.monotonic() - 0.1:
+                    next_s = time.monotonic()  # fell far behind: do not try to catch up
+            tracker_next_s = self.tracker_server.stream_due(time.monotonic_ns()) * 1e-9
+            delay_s = min(next_s, tracker_next_s) - time.monotonic()
             if delay_s > 0:
                 self._stop.wait(delay_s)
-            elif delay_s < -0.1:
-                next_s = time.monotonic()  # fell far behind: do not try to catch up
 
     def step_physics(self, now_s: float, dt_s: float) -> None:
         """Advance both drives by ``dt_s`` (s) to ``now_s`` (s, monotonic clock): one step."""
@@ -223,9 +228,9 @@ class SimulatedRig:
             return
         self._shut_down = True
         self._stop.set()
-        self.tracker_server.shutdown()
         if self._physics is not None:
-            self._physics.join(timeout=2.0)
+            self._physics.join(timeout=2.0)  # before the tracker it streams
+        self.tracker_server.shutdown()
         for drive in self.drives:
             drive.shutdown()
         for bus in self._buses:

@@ -80,7 +80,7 @@ class TrackerServer(LoopbackServer):
 
     :param sample_targets: ``sample_targets(now_ns) -> {'end': (x, y, z), ...}``: true
         target positions in the rig frame (m) at system time ``now_ns``; called from the
-        streaming thread at ``rate_hz``.
+        streaming thread (see :meth:`start`) at ``rate_hz``.
     :param rate_hz: sample rate (Hz).
     :param noise_m: standard deviation of the gaussian noise per axis (m).
     :param dropout_probability: probability that a line is a beam break.
@@ -119,6 +119,8 @@ class TrackerServer(LoopbackServer):
             raise ValueError('max_backlog_bytes and send_buffer_bytes must be positive')
         self.sample_targets = sample_targets
         self.rate_hz = float(rate_hz)
+        self._period_ns = int(round(1e9 / self.rate_hz))
+        self._deadline_ns: Optional[int] = None  # of the next sample (monotonic ns)
         self.noise_m = float(noise_m)
         self.dropout_probability = float(dropout_probability)
         self.to_tracker = to_tracker
@@ -141,17 +143,24 @@ class TrackerServer(LoopbackServer):
         self._unwritable_targets = set()
         self.clients_dropped = 0
 
-    def start(self) -> 'TrackerServer':
-        """Listen and stream to clients from now on (``_listen`` raises); return self."""
+    def start(self, own_thread: bool = True) -> 'TrackerServer':
+        """
+        Listen and stream to clients from now on (``_listen`` raises); return self.
+
+        :param own_thread: stream from a thread of the server's own; with ``False`` the
+            caller streams by calling :meth:`stream_due` from one thread of its own (the
+            simulated rig does it from its physics thread: one wake-up for both).
+        """
         with self._lock:
             if not self._listen(8):
                 return self
             self._listener.settimeout(_POLL_S)
-            self._threads = [
-                threading.Thread(target=self._run_acceptor, daemon=True,
-                                 name=f'tracker-accept-{self._port}'),
-                threading.Thread(target=self._run_stream, daemon=True,
-                                 name=f'tracker-stream-{self._port}')]
+            self._threads = [threading.Thread(target=self._run_acceptor, daemon=True,
+                                              name=f'tracker-accept-{self._port}')]
+            if own_thread:
+                self._threads.append(threading.Thread(
+                    target=self._run_stream, daemon=True,
+                    name=f'tracker-stream-{self._port}'))
             for thread in self._threads:
                 thread.start()
             self._state = 'running'
@@ -210,21 +219,37 @@ class TrackerServer(LoopbackServer):
                 self._new_clients.append(_Client(sock, peer))
             _log.info('tracker client %s connected', peer)
 
+    def stream_due(self, now_ns: int) -> int:
+        """
+        Sample and send if a sample is due at ``now_ns``; return when the next one is.
+
+        Both times are monotonic clock (ns). Call it from one thread only, and only
+        after :meth:`start` with ``own_thread=False`` (the server's own thread calls it
+        otherwise); nothing is sent once the server is shut down.
+        """
+        if self._stopping.is_set():
+            return now_ns + self._period_ns
+        if self._deadline_ns is None:
+            self._deadline_ns = now_ns
+        if now_ns < self._deadline_ns:
+            return self._deadline_ns
+        payload = self._sample_payload(time.time_ns())
+        self._adopt_new_clients()
+        if self._clients and payload:
+            self._send_to_all(payload)
+        # Absolute deadlines keep the mean rate exact however long one sample takes.
+        self._deadline_ns += self._period_ns
+        late_ns = time.monotonic_ns() - self._deadline_ns
+        if late_ns > _MAX_LATENESS_S * 1e9:
+            self._deadline_ns += late_ns  # fell far behind: do not burst
+        return self._deadline_ns
+
     def _run_stream(self) -> None:
-        period_ns = int(round(1e9 / self.rate_hz))
-        deadline_ns = time.monotonic_ns()
         while not self._stopping.is_set():
-            payload = self._sample_payload(time.time_ns())
-            self._adopt_new_clients()
-            if self._clients and payload:
-                self._send_to_all(payload)
-            # Absolute deadlines keep the mean rate exact however long one sample takes.
-            deadline_ns += period_ns
-            delay_ns = deadline_ns - time.monotonic_ns()
+            next_ns = self.stream_due(time.monotonic_ns())
+            delay_ns = next_ns - time.monotonic_ns()
             if delay_ns > 0:
                 self._stopping.wait(delay_ns * 1e-9)
-            elif delay_ns < -_MAX_LATENESS_S * 1e9:
-                deadline_ns = time.monotonic_ns()  # fell far behind: do not burst
 
     def _sample_payload(self, now_ns: int) -> bytes:
         """Sample every target once; return their lines, ready to send."""
