@@ -5,7 +5,7 @@ Parameters: ``topics`` (the topics to record; empty records every topic in the g
 ``bag_dir`` and ``bag_name`` (the bag is the folder ``<bag_dir>/<bag_name>``; the name
 defaults to ``run_<YYYYmmdd_HHMMSS>``, local time), ``discovery_period_s`` (how often
 the graph is polled for topics that appeared), ``take_period_s`` (how often the
-subscriptions' queues are emptied into the bag, 10 ms by default) and ``flush_period_s``
+subscriptions' queues are emptied into the bag, 50 ms by default) and ``flush_period_s``
 (the longest time a received message stays in memory only).
 
 A topic is subscribed once it has a publisher in the graph, with the type the graph
@@ -76,7 +76,7 @@ class Recorder(Node):
         self.declare_parameter('flush_period_s', 0.5, float_descriptor(
             'longest time a received message is held in memory only (s)', 0.01, 10.0,
             read_only=True))
-        self.declare_parameter('take_period_s', 0.01, float_descriptor(
+        self.declare_parameter('take_period_s', 0.05, float_descriptor(
             'how often the subscriptions are emptied into the bag (s); messages wait in '
             f'their DDS queues ({RECORD_DEPTH} deep) meanwhile', 0.001, 1.0, read_only=True))
         # [''] (what `-p "topics:=['']"` gives) means every topic, like an empty list.
@@ -89,10 +89,12 @@ class Recorder(Node):
         self.dropped = 0
         self._recording: Dict[str, str] = {}
         # The subscriptions live on a node that no executor spins, and a timer empties
-        # them: one wake-up per take period instead of one per message. With one
-        # executor wake-up per message, recording a run (500 Hz tracker points) took 46 %
-        # of a core on the 2-core development machine, beside the simulated rig; taking
-        # every 10 ms, 16 %. The log time is still when DDS received the message.
+        # them: one wake-up per take period instead of one per message (with one per
+        # message, recording a run's 500 Hz tracker points took 46 % of a core on the
+        # 2-core development machine). Every 50 ms a take empties about 25 tracker points
+        # from queues 1000 deep; every 10 ms cost the recorder 6.2-7.0 % of a core during
+        # a run against 5.0-6.6 % (bench/bench_live.py). The log time is still when DDS
+        # received the message.
         self._intake = Node(f'{self.get_name()}{INTAKE_SUFFIX}', context=self.context,
                             use_global_arguments=False, start_parameter_services=False,
                             enable_rosout=False)
