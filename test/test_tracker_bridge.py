@@ -6,6 +6,7 @@ conftest.py) and spins the executor itself, waiting on conditions with deadlines
 """
 
 import socket
+import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -395,7 +396,7 @@ def test_a_caller_driven_tracker_samples_on_absolute_deadlines():
     period_ns = 4_000_000  # 250 Hz
     with TrackerServer(lambda now_ns: {'end': END_TRUTH_M}, rate_hz=250.0).start(
             own_thread=False) as server:
-        assert not [t for t in server._threads if t.name.startswith('tracker-stream')]
+        assert f'tracker-stream-{server.port}' not in {t.name for t in threading.enumerate()}
         with socket.create_connection(('127.0.0.1', server.port), timeout=TIMEOUT_S) as sock:
             wait_for(lambda: server.client_count == 1, timeout_s=TIMEOUT_S,
                      what='the client to be accepted')
