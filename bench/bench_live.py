@@ -69,7 +69,7 @@ PUBLICATIONS_PER_JUMP = 5
 SETTLE_TOLERANCE_M = 2e-4
 SETTLE_TIMEOUT_S = 10.0
 RATE_HZ = 500.0
-PERIOD_S = 20.0
+PERIOD_S = 28.0
 LEAD_IN_S = 2.0
 LOOP_PRIORITY = 50
 
@@ -254,6 +254,14 @@ def measure(arguments, pinned: bool) -> dict:
             raise SystemExit('the run ended before the recorder window; give --seconds less')
         figures['cpu_recording'] = cpu_percent(dict(system.pids, recorder=recorder.pid),
                                                arguments.seconds)
+        # The same window once more without the recorder, after it has gone: the load of
+        # a run drifts along it, and the recorder's window lies between the two.
+        recorder.send_signal(signal.SIGINT)
+        recorder.wait(timeout=30.0)
+        if path_start_s + PERIOD_S - time.monotonic() < arguments.seconds:
+            raise SystemExit('the run ended before the window after the recorder; give '
+                             '--seconds less')
+        figures['cpu_after'] = cpu_percent(system.pids, arguments.seconds)
         frames = [f for f in sniffer.frames if window_start <= f[0] <= window_end]
         figures['periods'] = {
             n: np.diff([t for t, m, _ in frames if m == n]) * 1e-9 for n in (1, 2)}
@@ -363,13 +371,16 @@ def report(label: str, figures: dict, toggles: int) -> float:
     """Print one set-up's figures; return its total CPU without the recorder."""
     print(f'--- set-up {label}')
     for key, title in (('cpu', 'CPU during a run, % of one core'),
-                       ('cpu_recording', 'CPU during a run with the recorder, % of one core')):
+                       ('cpu_recording', 'CPU during a run with the recorder, % of one core'),
+                       ('cpu_after', 'CPU during a run after the recorder, % of one core')):
         cpu = figures[key]
         parts = ', '.join(f'{name} {value:.1f}' for name, value in sorted(cpu.items()))
         print(f'{title}: {parts}; total {sum(cpu.values()):.1f}')
-    added = sum(figures['cpu_recording'].values()) - sum(figures['cpu'].values())
+    without = 0.5 * (sum(figures['cpu'].values()) + sum(figures['cpu_after'].values()))
+    added = sum(figures['cpu_recording'].values()) - without
     print(f'the recorder adds {added:.1f} % of one core (itself '
-          f'{figures["cpu_recording"]["recorder"]:.1f})')
+          f'{figures["cpu_recording"]["recorder"]:.1f}; against the mean of the windows '
+          'before and after it)')
     expected = int(figures['window_s'] * RATE_HZ)
     for node_id in (1, 2):
         periods = figures['periods'][node_id]
