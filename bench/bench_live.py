@@ -10,9 +10,11 @@ process of the system, this one included, on the others. Then, from this
 process:
 
 * a run of the path (``/trajectory_generator/start``). During it, the CPU of each process
-  (``/proc/<pid>/stat``) is taken over one window without a recorder and, once
+  (``/proc/<pid>/stat``) is taken over one window without a recorder, once
   ``recorder`` (every run topic, both 500 Hz actuator states included) has subscribed,
-  over a second window with it; as % of one core.
+  over a second window with it, and, once it has exited, over a third without it; as %
+  of one core. What the recorder adds is its window against the mean of the other two
+  (the load of a run drifts along it).
 * a CAN sniffer (python-can ``socketcand`` client on the simulated bus) collects every
   RPDO the two loops send, with the time the kernel received it on the bus server's
   socket from the loop (the frame's timestamp: the moment it reached the "bus"). Their
