@@ -311,6 +311,59 @@ def test_stopping_takes_the_messages_still_waiting_in_the_queues(tmp_path, ros):
     assert xs == [float(i) for i in range(40)]
 
 
+def test_one_recorder_records_a_series_of_bags_each_with_the_latched_topics(tmp_path, ros):
+    # As the demo records its runs: ~/close_bag between runs, a new bag_name before the
+    # next. The recorder in this process, never spun: take_all() stands for its timer.
+    ros_ = ros()
+    points = ros_.node.create_publisher(
+        PointStamped, POINTS, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    latched = ros_.node.create_publisher(Path, LATCHED, LATCHED_QOS)
+    recorder = Recorder(context=ros_.context, parameter_overrides=[
+        RclpyParameter('bag_dir', value=str(tmp_path)),
+        RclpyParameter('bag_name', value='first'),
+        RclpyParameter('topics', value=[POINTS, LATCHED])])
+
+    def publish(indices, path_x=None):
+        if path_x is not None:
+            message = path()
+            message.poses[0].pose.position.x = path_x
+            latched.publish(message)
+        for index in indices:
+            points.publish(point(index))
+        for publisher in (points, latched):
+            # Reliable: acknowledged means in the recorder's queue.
+            assert publisher.wait_for_all_acked(Duration(seconds=5.0))
+        recorder.take_all()
+
+    try:
+        wait_for(lambda: recorder.discover() or len(recorder.recording) == 2, 10.0,
+                 'the recorder to subscribe')
+        wait_for(lambda: points.get_subscription_count() >= 1
+                 and latched.get_subscription_count() >= 1, 10.0, 'the recorder to match')
+        publish(range(10), path_x=1.0)
+        assert recorder.close_bag() == 11
+        publish(range(10, 15), path_x=2.0)  # between bags: only the latched path is kept
+        refused = recorder.set_parameters([RclpyParameter('bag_name', value='first')])[0]
+        assert not refused.successful and 'first' in refused.reason
+        assert recorder.set_parameters([RclpyParameter('bag_name', value='second')])[0].successful
+        publish(range(15, 22))
+        recorder.safe_stop()
+    finally:
+        recorder.destroy_node()
+
+    def contents(name):
+        reader = BagReader(tmp_path / name)
+        assert reader.complete
+        decoded = list(reader.decoded())
+        return ([d.point.x for _, d in decoded if hasattr(d, 'point')],
+                [d.poses[0].pose.position.x for _, d in decoded if hasattr(d, 'poses')])
+
+    assert contents('first') == ([float(i) for i in range(10)], [1.0])
+    # The second bag opens with the path as it was latched then, as a recorder that
+    # joined then would have got it.
+    assert contents('second') == ([float(i) for i in range(15, 22)], [2.0])
+
+
 def test_a_recorder_interrupted_while_starting_leaves_no_node_and_a_complete_bag(
         tmp_path, ros, monkeypatch):
     ros_ = ros()

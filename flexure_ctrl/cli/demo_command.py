@@ -41,11 +41,11 @@ RIG_LOG = 'rig.log'  # in --out: every line of every process of the demo
 
 def recorder_name(index: int) -> str:
     """
-    Name the recorder of run ``index``: each run's has a name of its own.
+    Name recorder ``index`` (the demo passes its process id): each has a name of its own.
 
-    The graph can show a recorder for seconds after its process ended (seen: over 10 s);
-    a namesake there would count as the new one up before it has subscribed, or as a
-    second recorder.
+    The graph can show a recorder for seconds after its process ended (seen: over 10 s),
+    a demo's just before this one's, say; a namesake there would count as the new one up
+    before it has subscribed, or as a second recorder.
     """
     return f'{RECORDER}_{index}'
 
@@ -113,6 +113,7 @@ class _Operator:
         rclpy.init()
         self.node = rclpy.create_node('flexure_ctrl_demo')
         self.run = RunMessage(RunState.IDLE)
+        self._clients = {}
         self._last_stamp_ns = 0
         self._run_changed = threading.Condition()
 
@@ -148,19 +149,49 @@ class _Operator:
             time.sleep(0.05)
 
     def _call(self, service_type, name: str, request, timeout_s: float = 10.0):
-        client = self.node.create_client(service_type, name)
-        try:
-            if not client.wait_for_service(timeout_sec=timeout_s):
-                raise DemoError(f'service {name} is not available')
-            future = client.call_async(request)
-            deadline = time.monotonic() + timeout_s
-            while not future.done():
-                if time.monotonic() > deadline:
-                    raise DemoError(f'service {name} did not answer in {timeout_s:.0f} s')
-                time.sleep(0.02)
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+        client = self._client(service_type, name, timeout_s)
+        future = client.call_async(request)
+        deadline = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > deadline:
+                raise DemoError(f'service {name} did not answer in {timeout_s:.0f} s')
+            time.sleep(0.02)
+        return future.result()
+
+    def _client(self, service_type, name: str, timeout_s: float = 10.0):
+        """
+        Return this node's client of service ``name``, made once and kept.
+
+        A new client joins the graph, and each process serving the service matches it;
+        in a busy Python process that match can hold up its publishers for a few hundred
+        milliseconds. Clients made before the first run keep those joins out of runs.
+        """
+        client = self._clients.get(name)
+        if client is None:
+            client = self._clients[name] = self.node.create_client(service_type, name)
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise DemoError(f'service {name} is not available')
+        return client
+
+    def connect_services(self, recorder: str) -> None:
+        """Make every client the runs will use: the run owner's, the loops', the recorder's."""
+        from rcl_interfaces.srv import SetParameters
+        from std_srvs.srv import Trigger
+        self._client(Trigger, START_SERVICE)
+        for node in (TRAJECTORY_GENERATOR, *ACTUATOR_NAMES, recorder):
+            self._client(SetParameters, f'/{node}/set_parameters')
+        self._client(Trigger, f'/{recorder}/close_bag')
+
+    def open_bag(self, recorder: str, bag_name: str) -> None:
+        """Have ``recorder`` record into a new bag ``bag_name`` (in its bag_dir)."""
+        self._set_parameter(recorder, 'bag_name', bag_name)
+
+    def close_bag(self, recorder: str) -> None:
+        """Have ``recorder`` complete its bag; return once it is complete."""
+        from std_srvs.srv import Trigger
+        response = self._call(Trigger, f'/{recorder}/close_bag', Trigger.Request())
+        if not response.success:
+            raise DemoError(f'{recorder} could not close its bag: {response.message}')
 
     def start_run(self) -> None:
         """Start a run; return once it runs (both loops hold its plan)."""
@@ -264,8 +295,19 @@ def _start_recorder(launcher: Launcher, bag_dir: Path, bag_name: str, index: int
 
 def _record_run(launcher: Launcher, operator: _Operator, bag_dir: Path, bag_name: str,
                 arguments: argparse.Namespace, progress: _Progress, index: int) -> Path:
-    """Record one run of the path; return its bag folder."""
-    _start_recorder(launcher, bag_dir, bag_name, index)
+    """
+    Record one run of the path; return its bag folder, complete.
+
+    One recorder records every run: it starts before the first, and from then on only
+    switches bags, so that no process joins the graph during a run (see
+    :meth:`_Operator._client`).
+    """
+    recorder = recorder_name(os.getpid())
+    if index == 0:
+        _start_recorder(launcher, bag_dir, bag_name, os.getpid())
+        operator.connect_services(recorder)
+    else:
+        operator.open_bag(recorder, bag_name)
     try:
         operator.start_run()
         run_s = LEAD_IN_S + arguments.period + LEAD_OUT_S
@@ -282,10 +324,19 @@ def _record_run(launcher: Launcher, operator: _Operator, bag_dir: Path, bag_name
             raise DemoError(f'the run {ended.state.value}: {ended.reason}')
         progress.run(index, run_s, run_s)
     finally:
-        if launcher.stop(RECORDER) != 0:
-            progress.line(f'[demo] the recorder of {bag_name} did not end cleanly:\n'
-                          + '\n'.join(launcher.lines[-10:]))
+        try:
+            operator.close_bag(recorder)
+        except DemoError as error:
+            # Stopping the recorder completes the bag too.
+            progress.line(f'[demo] {error}: stopping the recorder')
+            _stop_recorder(launcher, progress)
     return bag_dir / bag_name
+
+
+def _stop_recorder(launcher: Launcher, progress: _Progress) -> None:
+    if launcher.stop(RECORDER) not in (0, None):
+        progress.line('[demo] the recorder did not end cleanly:\n'
+                      + '\n'.join(launcher.lines[-10:]))
 
 
 def run(arguments: argparse.Namespace) -> int:
@@ -367,6 +418,7 @@ def run(arguments: argparse.Namespace) -> int:
             progress.line(f'[demo] repeatability floor: max {1e3 * floor.max_abs_m[0]:.3f} / '
                           f'{1e3 * floor.max_abs_m[1]:.3f} mm, rms {1e3 * floor.rms_m[0]:.3f}'
                           f' / {1e3 * floor.rms_m[1]:.3f} mm in x / y  ({bag})')
+        _stop_recorder(launcher, progress)
     except DemoError as error:
         print(f'flexure-ctrl demo: {error} (the output of every process: {out / RIG_LOG})',
               file=sys.stderr)

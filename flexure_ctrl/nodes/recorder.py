@@ -17,7 +17,16 @@ the publisher's source timestamp as publish time; the publishers' offered QoS go
 the bag (what ``ros2 bag play`` and the ``player`` node replay with).
 
 The log says ``bag: <folder>`` at start and ``recording <topic> [<type>]`` for each
-topic it starts recording, so a supervising process can wait for those lines.
+topic it starts recording.
+
+One recorder can record a series of runs, a bag each, without leaving and joining the
+graph between them: ``~/close_bag`` (``std_srvs/Trigger``) completes the current bag and
+records nothing more until ``bag_name`` is set to a new name, which opens
+``<bag_dir>/<bag_name>``. A new bag starts with the last message of each transient-local
+topic (the latched paths and statuses), as a recorder that joined then would have got
+them. Subscribers that join make every publisher of their topics match them, and in a
+busy Python process that match can hold up a publisher for a few hundred milliseconds
+(the actuator loops' included): a recorder that stays keeps those joins out of the runs.
 :meth:`Recorder.safe_stop` (run by Ctrl-C or SIGTERM) closes the bag: the file is then
 complete. A killed recorder leaves every message received up to ``flush_period_s``
 before the kill readable (see :mod:`flexure_ctrl.core.bag`).
@@ -34,10 +43,12 @@ from flexure_ctrl.nodes.bag_qos import subscription_qos
 from flexure_ctrl.nodes.common import (float_descriptor, leaves_no_half_built_node,
                                        run_node)
 from flexure_ctrl.nodes.common import typed_descriptor
-from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.msg import ParameterType, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
 from rclpy.subscription import Subscription
+from std_srvs.srv import Trigger
 
 # Never recorded when recording "every topic": the graph's own plumbing.
 _GRAPH_TOPICS = ('/rosout', '/parameter_events')
@@ -70,7 +81,8 @@ class Recorder(Node):
             read_only=True))
         self.declare_parameter('bag_name', '', typed_descriptor(
             ParameterType.PARAMETER_STRING,
-            "bag folder name; '' gives run_<YYYYmmdd_HHMMSS> (local time)", read_only=True))
+            "bag folder name; '' gives run_<YYYYmmdd_HHMMSS> (local time); setting a new "
+            'name later completes the current bag and records into that one'))
         self.declare_parameter('discovery_period_s', 0.1, float_descriptor(
             'how often the graph is polled for new topics (s)', 0.01, 10.0, read_only=True))
         self.declare_parameter('flush_period_s', 0.5, float_descriptor(
@@ -83,8 +95,13 @@ class Recorder(Node):
         self.wanted: List[str] = [t for t in self.get_parameter('topics').value or [] if t]
         name = self.get_parameter('bag_name').value or default_bag_name()
         self.bag_path = Path(self.get_parameter('bag_dir').value) / name
-        self.writer = BagWriter(self.bag_path,
-                                flush_period_s=self.get_parameter('flush_period_s').value)
+        self._flush_period_s = self.get_parameter('flush_period_s').value
+        self.writer: Optional[BagWriter] = BagWriter(self.bag_path,
+                                                     flush_period_s=self._flush_period_s)
+        # What each new bag needs of a topic: type, offered QoS, type hash; and the last
+        # message of each transient-local topic (data, log time, publish time).
+        self._topic_records: Dict[str, Tuple[str, List[dict], str]] = {}
+        self._latched: Dict[str, Optional[Tuple[bytes, int, int]]] = {}
         self.recorded = 0
         self.dropped = 0
         self._recording: Dict[str, str] = {}
@@ -110,6 +127,8 @@ class Recorder(Node):
             self.take_timer = self.create_timer(
                 self.get_parameter('take_period_s').value, self.take_all,
                 clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self.add_on_set_parameters_callback(self._on_set_parameters)
+            self.create_service(Trigger, '~/close_bag', self._on_close_bag)
             self.discover()
         except BaseException:
             # (Ctrl-C during the first discovery, say.) The decorator destroys this node
@@ -119,6 +138,56 @@ class Recorder(Node):
             self.writer.close()
             self._intake.destroy_node()
             raise
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        for parameter in parameters:
+            if parameter.name != 'bag_name':
+                continue
+            name = parameter.value
+            if not name or '/' in name:
+                return SetParametersResult(
+                    successful=False, reason=f"bag_name must be a folder name, got '{name}'")
+            if self._stopped:
+                return SetParametersResult(successful=False, reason='the recorder stopped')
+            try:
+                self.open_bag(Path(self.get_parameter('bag_dir').value) / name)
+            except BagError as error:
+                return SetParametersResult(successful=False, reason=str(error))
+        return SetParametersResult(successful=True)
+
+    def open_bag(self, path: Path) -> None:
+        """
+        Complete the current bag (if any) and record into ``path`` from now on.
+
+        The new bag gets every recorded topic and the last message of each
+        transient-local one. :raises BagError: ``path`` exists and is not empty.
+        """
+        writer = BagWriter(path, flush_period_s=self._flush_period_s)
+        self.close_bag()
+        self.writer, self.bag_path = writer, path
+        self.get_logger().info(f'bag: {path}')
+        for topic, (type_name, profiles, type_hash) in self._topic_records.items():
+            writer.add_topic(topic, type_name, profiles, type_description_hash=type_hash)
+            if self._latched.get(topic) is not None:
+                writer.write(topic, *self._latched[topic])
+
+    def close_bag(self) -> Optional[int]:
+        """Complete the current bag; return its message count (None: no bag was open)."""
+        if self.writer is None:
+            return None
+        # What arrived since the last take belongs in this bag.
+        self.take_all()
+        writer, self.writer = self.writer, None
+        writer.close()
+        self.get_logger().info(f'bag closed: {self.bag_path} ({writer.message_count} messages)')
+        return writer.message_count
+
+    def _on_close_bag(self, _request, response):
+        count = self.close_bag()
+        response.success = True
+        response.message = ('no bag was open' if count is None
+                            else f'closed {self.bag_path} ({count} messages)')
+        return response
 
     @property
     def recording(self) -> Dict[str, str]:
@@ -147,18 +216,23 @@ class Recorder(Node):
             self.get_logger().warning(
                 f'{topic} has several types ({", ".join(types)}); recording {type_name}')
         publishers = [p for p in publishers if p.topic_type == type_name] or publishers
+        record = (type_name, [qos_to_dict(p.qos_profile) for p in publishers],
+                  str(publishers[0].topic_type_hash))
         try:
             message_type = message_class(type_name)
-            self.writer.add_topic(
-                topic, type_name, [qos_to_dict(p.qos_profile) for p in publishers],
-                type_description_hash=str(publishers[0].topic_type_hash))
+            if self.writer is not None:
+                self.writer.add_topic(topic, record[0], record[1],
+                                      type_description_hash=record[2])
         except BagError as error:
             self._skipped.add(topic)
             self.get_logger().error(f'not recording {topic}: {error}')
             return
+        self._topic_records[topic] = record
+        qos = subscription_qos([p.qos_profile for p in publishers])
+        if qos.durability == DurabilityPolicy.TRANSIENT_LOCAL:
+            self._latched[topic] = None
         self._topic_subscriptions.append((topic, self._intake.create_subscription(
-            message_type, topic, _taken_by_the_timer,
-            subscription_qos([p.qos_profile for p in publishers]), raw=True)))
+            message_type, topic, _taken_by_the_timer, qos, raw=True)))
         self._recording[topic] = type_name
         self.get_logger().info(f'recording {topic} [{type_name}]')
 
@@ -177,6 +251,10 @@ class Recorder(Node):
     def _on_message(self, topic: str, data: bytes, info: dict) -> None:
         received_ns = info.get('received_timestamp') or time.time_ns()
         source_ns = info.get('source_timestamp') or received_ns
+        if topic in self._latched:
+            self._latched[topic] = (data, received_ns, source_ns)
+        if self.writer is None:
+            return  # between bags (~/close_bag): only the latched topics are kept
         try:
             self.writer.write(topic, data, received_ns, source_ns)
         except BagError:
@@ -193,11 +271,8 @@ class Recorder(Node):
         self.take_timer.cancel()
         # What arrived since the last take belongs in the bag too (taking works after
         # Ctrl-C has shut the context down: the queues outlive it).
-        self.take_all()
+        self.close_bag()
         self._stopped = True
-        self.writer.close()
-        self.get_logger().info(
-            f'bag closed: {self.bag_path} ({self.writer.message_count} messages)')
 
     def destroy_node(self) -> None:
         """Close the bag before the node's entities go away."""
