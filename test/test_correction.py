@@ -264,6 +264,41 @@ def test_a_run_of_noise_alone_learns_nothing_beyond_the_noise():
     assert np.abs(update).max() < noise_m
 
 
+def test_around_a_reversal_the_update_learns_a_sharp_error_that_q_alone_leaves():
+    # A plant that realises the command exactly, but for two sharp errors in y, 0.1 s
+    # wide: one at an actuator's reversal (7 s), one elsewhere (3 s).
+    run = make_run(lambda t: demand_at(PATH, t))
+    tracked_s = (run.tracked_t_ns - T0_NS) / 1e9
+    sharp_m = 2e-4
+    realised = demand_at(PATH, tracked_s)
+    for at_s in (3.0, 7.0):
+        realised[:, 1] -= sharp_m * np.exp(-0.5 * ((tracked_s - at_s) / 0.03) ** 2)
+    errors = path_errors(RecordedRun(run.path_start_ns, run.duration_s, run.demand_t_ns,
+                                     run.demand_m, run.command_m, run.tracked_t_ns, realised))
+
+    def update_y_m(command, at_s):
+        update = command.points_m[:, 1] - demand_at(PATH, command.t_s)[:, 1]
+        return np.abs(update[np.abs(command.t_s - at_s) < 0.2]).max()
+
+    plain = corrected_command(errors)
+    widened = corrected_command(errors, reversals_s=[7.0], reversal_gain=1.0)
+    half = corrected_command(errors, reversals_s=[7.0], reversal_gain=0.5)
+    # Q (1 Hz) passes a sixth of a 0.1 s error: most of it is left for the next run.
+    assert update_y_m(plain, 7.0) < 0.2 * sharp_m
+    # Around the reversal the band is widened: the update takes up most of it there ...
+    assert update_y_m(widened, 7.0) > 0.75 * sharp_m
+    # ... the part above Q's band with the reversal's gain ...
+    assert update_y_m(half, 7.0) == pytest.approx(
+        update_y_m(plain, 7.0) + 0.5 * (update_y_m(widened, 7.0) - update_y_m(plain, 7.0)),
+        rel=0.05)
+    # ... and nowhere else.
+    assert update_y_m(widened, 3.0) == pytest.approx(update_y_m(plain, 3.0), rel=1e-6)
+    with pytest.raises(CorrectionError, match='reversal_cutoff_hz'):
+        corrected_command(errors, reversals_s=[7.0], reversal_cutoff_hz=0.5)
+    with pytest.raises(CorrectionError, match='reversal_gain'):
+        IterativeCorrector(reversal_gain=-0.1)
+
+
 def test_corrections_after_the_first_use_the_later_gain():
     corrector = IterativeCorrector(gain=1.0, later_gain=0.4, spike_threshold=None)
     first = path_errors(make_run(lambda t: demand_at(PATH, t)))

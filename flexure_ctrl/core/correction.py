@@ -22,7 +22,8 @@ A host that stalls for a moment (or a bump to the rig) leaves a sharp error in o
 that the next run does not repeat. Learning it would put its mirror image into every
 later run, so :class:`IterativeCorrector` leaves out what is sharp in a run's error *and*
 in its difference from the run before (:func:`unrepeated_spikes`); a sharp error that
-both runs share (backlash at a reversal) is still learned.
+both runs share (backlash at a reversal) is still learned, and around each actuator
+reversal in a wider band than ``Q``'s (:func:`corrected_command`).
 """
 
 from dataclasses import dataclass, replace
@@ -56,6 +57,12 @@ DEFAULT_EDGE_BLEND_S = 0.6
 # max, two runs of one command apart, was 4 to 12 of them; its RMS was 1 to 1.8.
 DEFAULT_MAX_ALLOWANCE = 6.0
 DEFAULT_RMS_ALLOWANCE = 0.5
+# Around each actuator reversal the error is sharper than Q's band: the nut's crossing of
+# the lead screw's dead band, which the loops' take-up carries only in part. There the
+# update learns the error up to this cutoff, over this far either side of the reversal.
+DEFAULT_REVERSAL_CUTOFF_HZ = 8.0
+DEFAULT_REVERSAL_HALF_WIDTH_S = 0.25
+DEFAULT_REVERSAL_GAIN = 0.5
 # Median absolute deviation to the standard deviation of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
 
@@ -364,9 +371,22 @@ class CommandPath:
 def corrected_command(errors: PathErrors, gain: float = 1.0,
                       cutoff_hz: Optional[float] = DEFAULT_CUTOFF_HZ,
                       taper_s: float = 0.1,
-                      edge_blend_s: float = DEFAULT_EDGE_BLEND_S) -> CommandPath:
+                      edge_blend_s: float = DEFAULT_EDGE_BLEND_S,
+                      reversals_s: Sequence[float] = (),
+                      reversal_cutoff_hz: float = DEFAULT_REVERSAL_CUTOFF_HZ,
+                      reversal_half_width_s: float = DEFAULT_REVERSAL_HALF_WIDTH_S,
+                      reversal_gain: float = DEFAULT_REVERSAL_GAIN) -> CommandPath:
     """
     Return ``c_{k+1} = c_k + gain * Q(p - e_k)`` on the path ``[0, duration]``.
+
+    Where an actuator reverses, the lead screw's nut crosses its dead band: the loops'
+    take-up carries it across, but not in the drive's lag, and what is left is a sharp
+    error (about 0.1 s wide) that repeats from run to run and that ``Q`` cannot follow.
+    Around each reversal the update widens ``Q``'s band to learn it (``reversals_s``).
+    Its part above ``Q``'s band is learned with half the gain by default: the crossing
+    scatters from run to run by about a third of itself, and half of it averages the
+    scatter of two runs (tuned on random plants 0-19, 3 realisations each, against
+    gains 0.3 and 1, cutoffs 4 and 15 Hz and half-widths 0.15 and 0.35 s).
 
     The loops hold the plan's first point through the lead-in and its last after the end,
     at rest. An update with a slope at either end would have the plan leave (or reach)
@@ -379,6 +399,10 @@ def corrected_command(errors: PathErrors, gain: float = 1.0,
     :param cutoff_hz: cutoff of the zero-phase low-pass ``Q`` (Hz); None: no filter.
     :param taper_s: length (s) of the ramp of the update next to a long gap.
     :param edge_blend_s: length (s) of the blend at each end of the path; 0: none.
+    :param reversals_s: the path times (s) of the actuators' reversals. Within
+        ``reversal_half_width_s`` of each (a raised-cosine window) the error is learned up
+        to ``reversal_cutoff_hz`` (Hz) instead of ``cutoff_hz``, the part above
+        ``cutoff_hz`` with ``reversal_gain`` (0: not at all).
     """
     if not gain > 0.0:
         raise CorrectionError(f'the learning gain must be > 0, got {gain}')
@@ -386,6 +410,18 @@ def corrected_command(errors: PathErrors, gain: float = 1.0,
         raise CorrectionError(f'edge_blend_s must be >= 0, got {edge_blend_s}')
     error = errors.grid_error_m if cutoff_hz is None else errors.smooth_error_m(cutoff_hz)
     weight = learning_weight(errors.grid_learnable, int(round(taper_s * errors.grid_rate_hz)))
+    if not 0.0 <= reversal_gain <= 2.0:
+        raise CorrectionError(f'reversal_gain must be in [0, 2], got {reversal_gain}')
+    if cutoff_hz is not None and len(reversals_s) and reversal_gain > 0.0:
+        if not (reversal_half_width_s > 0.0 and reversal_cutoff_hz > cutoff_hz):
+            raise CorrectionError(
+                f'reversal_half_width_s must be > 0 and reversal_cutoff_hz above cutoff_hz '
+                f'({cutoff_hz} Hz), got {reversal_half_width_s} s and {reversal_cutoff_hz} Hz')
+        # What lies between Q's band and the reversal's, learned with its own gain (never
+        # above the update's: a step back shrinks both).
+        window = reversal_window(errors.grid_t_s, reversals_s, reversal_half_width_s)
+        sharp = errors.smooth_error_m(reversal_cutoff_hz) - error
+        error = error + (min(reversal_gain, gain) / gain) * window[:, None] * sharp
     t_s, command = _on_path_exactly(errors, errors.grid_command_m)
     _, update = _on_path_exactly(errors, gain * weight[:, None] * error)
     if edge_blend_s > 0.0:
@@ -393,6 +429,21 @@ def corrected_command(errors: PathErrors, gain: float = 1.0,
             blend = 0.5 - 0.5 * np.cos(np.pi * np.clip(from_end_s / edge_blend_s, 0.0, 1.0))
             update = update[end] + blend[:, None] * (update - update[end])
     return CommandPath(t_s, command + update)
+
+
+def reversal_window(t_s: np.ndarray, reversals_s: Sequence[float],
+                    half_width_s: float) -> np.ndarray:
+    """
+    Return the weight (0 to 1) on ``t_s`` of the learning around reversals.
+
+    It is 1 at each reversal (s) and falls as a raised cosine to 0 at ``half_width_s`` (s)
+    either side of it.
+    """
+    window = np.zeros(np.shape(t_s))
+    for reversal_s in reversals_s:
+        distance = np.clip(np.abs(np.asarray(t_s) - reversal_s) / half_width_s, 0.0, 1.0)
+        window = np.maximum(window, 0.5 + 0.5 * np.cos(np.pi * distance))
+    return window
 
 
 def _on_path_exactly(errors: PathErrors, values: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -427,6 +478,7 @@ class Iteration:
     rms_error_m: np.ndarray
     spikes: np.ndarray
     scatter_m: np.ndarray
+    reversals_s: Tuple[float, ...] = ()
 
     def spike_seconds(self) -> float:
         """Return how long (s of path time) the run's error was left out of learning."""
@@ -462,6 +514,10 @@ class IterativeCorrector:
         not have (:func:`unrepeated_spikes`, this many robust standard deviations) are
         bridged, not learned; None learns everything.
     :param edge_blend_s: see :func:`corrected_command`.
+    :param reversal_cutoff_hz: see :func:`corrected_command`; each run's reversals come
+        with it (:meth:`add_run`).
+    :param reversal_half_width_s: see :func:`corrected_command`.
+    :param reversal_gain: see :func:`corrected_command`.
     """
 
     def __init__(self, gain: float = 1.0, later_gain: float = DEFAULT_LATER_GAIN,
@@ -469,7 +525,10 @@ class IterativeCorrector:
                  gain_shrink: float = 0.5, max_allowance: float = DEFAULT_MAX_ALLOWANCE,
                  rms_allowance: float = DEFAULT_RMS_ALLOWANCE,
                  spike_threshold: Optional[float] = DEFAULT_SPIKE_THRESHOLD,
-                 edge_blend_s: float = DEFAULT_EDGE_BLEND_S) -> None:
+                 edge_blend_s: float = DEFAULT_EDGE_BLEND_S,
+                 reversal_cutoff_hz: float = DEFAULT_REVERSAL_CUTOFF_HZ,
+                 reversal_half_width_s: float = DEFAULT_REVERSAL_HALF_WIDTH_S,
+                 reversal_gain: float = DEFAULT_REVERSAL_GAIN) -> None:
         for name, value in (('gain', gain), ('later_gain', later_gain)):
             if not 0.0 < value <= 2.0:
                 raise CorrectionError(f'the learning {name} must be in (0, 2], got {value}')
@@ -491,6 +550,15 @@ class IterativeCorrector:
         if not edge_blend_s >= 0.0:
             raise CorrectionError(f'edge_blend_s must be >= 0, got {edge_blend_s}')
         self.edge_blend_s = float(edge_blend_s)
+        if not (0.0 <= reversal_gain <= 2.0 and reversal_half_width_s > 0.0
+                and (cutoff_hz is None or reversal_cutoff_hz > cutoff_hz)):
+            raise CorrectionError(
+                f'reversal_gain must be in [0, 2], reversal_half_width_s > 0 and '
+                f'reversal_cutoff_hz above cutoff_hz ({cutoff_hz} Hz), got {reversal_gain}, '
+                f'{reversal_half_width_s} s and {reversal_cutoff_hz} Hz')
+        self.reversal_cutoff_hz = float(reversal_cutoff_hz)
+        self.reversal_half_width_s = float(reversal_half_width_s)
+        self.reversal_gain = float(reversal_gain)
         self.iterations: List[Iteration] = []
         self.note = ''
 
@@ -520,13 +588,16 @@ class IterativeCorrector:
         return ''
 
     def add_run(self, errors: PathErrors,
-                bridged_s: Sequence[Tuple[float, float]] = ()) -> None:
+                bridged_s: Sequence[Tuple[float, float]] = (),
+                reversals_s: Sequence[float] = ()) -> None:
         """
         Add the errors of the run made with the last proposed command.
 
         :param bridged_s: spans (s of path time, start and end) whose error is bridged,
             not learned, as a spike's is: what the next run will not repeat (a reversal
             whose backlash the loops take up from then on).
+        :param reversals_s: path times (s) of the actuators' reversals in the run, where
+            the update learns in a wider band (:func:`corrected_command`).
         """
         spikes = np.zeros(errors.grid_t_s.shape, dtype=bool)
         if self.iterations and self.spike_threshold is not None:
@@ -536,7 +607,8 @@ class IterativeCorrector:
             spikes |= (errors.grid_t_s >= start_s) & (errors.grid_t_s <= end_s)
         scatter = (errors.noise_m(self.cutoff_hz) if self.cutoff_hz else errors.noise_m())
         self.iterations.append(Iteration(errors, errors.max_abs_error_m(),
-                                         errors.rms_error_m(), spikes, scatter))
+                                         errors.rms_error_m(), spikes, scatter,
+                                         tuple(float(t) for t in reversals_s)))
 
     def next_command(self) -> Optional[CommandPath]:
         """
@@ -566,7 +638,11 @@ class IterativeCorrector:
                 f'learning stopped: gain {self.gain:.3g} below {self.min_gain:.3g}')
             return None
         return corrected_command(without_spikes(source.errors, source.spikes), self.gain,
-                                 self.cutoff_hz, edge_blend_s=self.edge_blend_s)
+                                 self.cutoff_hz, edge_blend_s=self.edge_blend_s,
+                                 reversals_s=source.reversals_s,
+                                 reversal_cutoff_hz=self.reversal_cutoff_hz,
+                                 reversal_half_width_s=self.reversal_half_width_s,
+                                 reversal_gain=self.reversal_gain)
 
 
 def reduction_percent(first: Sequence[float], later: Sequence[float]) -> Tuple[float, ...]:

@@ -10,7 +10,8 @@ correct``:
   loop's own readings and commands around the actuator's reversals), which the loops
   take up from the next run on (their ``backlash_m``). A reversal is where a lead screw's
   dead band leaves a sharp error that the path's 1 Hz learning cannot follow; carried
-  across by the loop, it is gone at its cause;
+  across by the loop, it is gone at its cause. What the take-up leaves there, the path's
+  learning learns in a wider band around each reversal of the recorded readings;
 * each drive's velocity lag, fitted with the backlash, which the loops feed forward from
   the next run on (their ``lag_feedforward_s``: the plan's acceleration times the lag).
   Where the plan's acceleration steps (the path leaving the lead-in's hold) a lagging
@@ -80,6 +81,15 @@ class PathLearning:
         """
         self.messages = []
         bridged = self._stalls(errors, cycles)
+        # Where each stroke of the recorded readings starts (path time, s): the lead-in's
+        # strokes, the path's first move (the nut comes from the lead-in's side) and its
+        # reversals.
+        stroke_starts: Dict[str, Tuple[float, ...]] = {}
+        for name in ACTUATOR_NAMES:
+            if name in cycles and len(cycles[name][0]) > 1:
+                t_s, position_m, _ = cycles[name]
+                stroke_starts[name] = JointSampler(t_s, position_m, np.zeros_like(t_s)).strokes(
+                    STROKE_MIN_TRAVEL_M)[0]
         if self.backlash is not None:
             for name in ACTUATOR_NAMES:
                 if name not in cycles:
@@ -102,15 +112,15 @@ class PathLearning:
                     f'{learned * 1e3:.3f} mm; drive lag {estimate.lag_s * 1e3:.0f} ms, fed '
                     f'forward next run: {self.lag_s[name] * 1e3:.0f} ms')
                 if abs(learned - used) > max(TAKE_UP_CHANGE_M, TAKE_UP_CHANGE_FRACTION * learned):
-                    # Where each stroke of the path starts (its first move included: the
-                    # nut comes from the lead-in's side) the take-up acts.
-                    t_s, position_m, _ = cycles[name]
-                    starts, _ = JointSampler(t_s, position_m, np.zeros_like(t_s)).strokes(
-                        STROKE_MIN_TRAVEL_M)
+                    # Where each stroke of the path starts the take-up acts.
                     bridged += [(t - REVERSAL_HALF_WIDTH_S, t + REVERSAL_HALF_WIDTH_S)
-                                for t in starts if 0.0 <= t <= errors.duration_s]
+                                for t in stroke_starts.get(name, ())
+                                if 0.0 <= t <= errors.duration_s]
                 self.take_up_m[name] = learned
-        self.corrector.add_run(errors, bridged_s=bridged)
+        # Around the path's reversals the error is learned in a wider band than Q's.
+        self.corrector.add_run(errors, bridged_s=bridged, reversals_s=[
+            t for starts in stroke_starts.values() for t in starts
+            if 0.0 < t < errors.duration_s])
 
     def _stalls(self, errors: PathErrors,
                 cycles: Mapping[str, LoopCycles]) -> List[Tuple[float, float]]:
