@@ -80,8 +80,9 @@ def run(arguments: argparse.Namespace) -> int:
     for index, bag in enumerate(arguments.bags):
         run_of_bag = load_last_run(bag)
         errors = path_errors(run_of_bag, bridge_max_s=arguments.bridge_max_s)
-        learning.add_run(errors, load_actuator_states(bag, run_of_bag)
-                         if arguments.take_up_backlash else {})
+        # As the demo: the loops' states tell a stalled loop and the reversals, with or
+        # without the take-up.
+        learning.add_run(errors, load_actuator_states(bag, run_of_bag))
         max_mm = errors.max_abs_error_m() * 1e3
         gaps = int((~errors.grid_learnable[errors.on_path()]).sum())
         spike_s = corrector.iterations[-1].spike_seconds()
