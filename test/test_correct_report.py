@@ -9,13 +9,14 @@ from flexure_ctrl.core.errors import CorrectionError
 from flexure_ctrl.core.run import RunMessage, RunState
 from flexure_ctrl.core.runs import load_runs
 from flexure_ctrl.core.trajectory import SinePath, WaypointPath
-from flexure_ctrl.interface import RUN_STATUS_NAME
+from flexure_ctrl.interface import ACTUATOR_NAMES, actuator_state_topic, RUN_STATUS_NAME
 from flexure_ctrl.nodes.run_messages import word_message
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
+from sensor_msgs.msg import JointState
 
 PERIOD_S = 4.0
 LEAD_IN_S = 0.5
@@ -62,8 +63,13 @@ def realised(command_xy):
 
 
 def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=True,
-               noise_m=0.0, seed=0):
-    """Record runs of the sine as the nodes publish them; return the bag folder."""
+               noise_m=0.0, seed=0, states_gap_s=None):
+    """
+    Record runs of the sine as the nodes publish them; return the bag folder.
+
+    :param states_gap_s: (start, end) s of path time: with it, both loops' states are
+        recorded at 100 Hz but for that span, where the loops did not cycle.
+    """
     rng = np.random.default_rng(seed)
     command_of_t = command_of_t or demand_of_t
     with BagWriter(folder) as bag:
@@ -72,6 +78,9 @@ def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=Tr
                                  ('/flexure/demand_path', 'nav_msgs/msg/Path'),
                                  ('/flexure/command_path', 'nav_msgs/msg/Path')):
             bag.add_topic(topic, type_name)
+        if states_gap_s is not None:
+            for name in ACTUATOR_NAMES:
+                bag.add_topic(actuator_state_topic(name), 'sensor_msgs/msg/JointState')
         # What the generator published when it started, and its idle word.
         bag.write('/flexure/demand_path', serialize_message(path_message(0, demand_of_t)),
                   T0_NS - 10**9)
@@ -99,6 +108,16 @@ def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=Tr
                 tracked = tracked + rng.normal(0.0, noise_m, tracked.shape)
             for t_ns, xy in zip(tracker[keep], tracked):
                 events.append((int(t_ns), '/flexure/tracker/end', point(t_ns, xy)))
+            if states_gap_s is not None:
+                for t_ns in range(run_start_ns, run_end_ns, 10**7):
+                    t_s = (t_ns - path_start_ns) / 1e9
+                    if states_gap_s[0] < t_s < states_gap_s[1]:
+                        continue
+                    for index, name in enumerate(ACTUATOR_NAMES):
+                        state = stamped(JointState(), t_ns)
+                        state.position = [float(demand_of_t(np.array([t_s]))[0, index])]
+                        state.velocity = [0.0]
+                        events.append((t_ns, actuator_state_topic(name), state))
             for t_ns, topic, message in sorted(events, key=lambda e: e[0]):
                 bag.write(topic, serialize_message(message), t_ns)
     return folder
@@ -143,6 +162,18 @@ def test_correct_writes_the_next_command_path(tmp_path, capsys):
     assert written.duration_s == pytest.approx(PERIOD_S, abs=1e-6)
     assert np.allclose(written.sample(expected.t_s)[0], expected.points_m, atol=1e-8)
     assert 'max |e_y|' in capsys.readouterr().out
+
+
+def test_correct_reads_the_loops_states_without_the_take_up_too(tmp_path, capsys):
+    # A run in which both loops did not cycle from 1.5 to 1.8 s of path time.
+    bag = write_runs(tmp_path / 'run_0', [T0_NS], states_gap_s=(1.5, 1.8))
+    out = tmp_path / 'command_1.csv'
+    assert main(['correct', str(bag), '--out', str(out), '--no-take-up']) == 0
+    printed = capsys.readouterr().out
+    # The stall is told from the states, and bridged, not learned ...
+    assert 'no loop cycle for' in printed and 'bridged, not learned' in printed
+    # ... and nothing is taken up or fed forward.
+    assert 'taken up next run' not in printed and 'flexure-ctrl up' not in printed
 
 
 def test_correct_then_report_shows_the_reduction(tmp_path, capsys):
