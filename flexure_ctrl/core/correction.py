@@ -386,8 +386,7 @@ def corrected_command(errors: PathErrors, gain: float = 1.0,
     part of that error follows the command (while the nut is in its dead band a command
     moves nothing: on a 0.25 mm, 80 ms plant a tenth of it goes). The part above ``Q``'s
     band is learned with half the gain by default, as the crossing scatters from run to
-    run (tuned on random plants 0-19, 3 realisations each, against gains 0.3 and 1,
-    cutoffs 4 and 15 Hz and half-widths 0.15 and 0.35 s).
+    run (the defaults were tuned on the random plants of seeds 0-19).
 
     The loops hold the plan's first point through the lead-in and its last after the end,
     at rest. An update with a slope at either end would have the plan leave (or reach)
