@@ -55,7 +55,6 @@ import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from flexure_ctrl import interface
 from flexure_ctrl.core.actuator_drive import ActuatorDrive, Mode
-from flexure_ctrl.core.cdr import JointStateFrame
 from flexure_ctrl.core.commissioning import load_eds
 from flexure_ctrl.core.drive_client import DriveError
 from flexure_ctrl.core.drive_link import DriveConnectError, DriveLink
@@ -78,6 +77,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
+_NS_PER_S = 1_000_000_000
 # configure: how often DriveLink is asked whether a try is due (it paces its own retries).
 _CONNECT_TICK_S = 0.02
 _RESET_TIMEOUT_S = 1.0
@@ -130,7 +130,7 @@ class ActuatorLoop(LifecycleNode):
         self.thread = self._new_thread()
         self.drive.problem = 'unconfigured: configure opens the bus and commissions the drive'
 
-        self._state = JointStateFrame(self.actuator)
+        self._state = JointState(name=[self.actuator], position=[0.0], velocity=[0.0])
         self._cycles_per_state = cycles_per_state(self.rate_hz, p.state_rate_hz)
         self._cycles_to_state = 1
         self._status_name = interface.STATUS_PREFIX + self.actuator
@@ -354,11 +354,14 @@ class ActuatorLoop(LifecycleNode):
         self._report()
 
     def _publish_state(self, measured_m: float, commanded_m_s: float, stamp_ns: int) -> None:
-        """Publish a state (lock held), serialised in place; stamp: when the RPDO went out."""
+        """Publish a state (lock held), reusing one message; stamp: when the RPDO went out."""
+        state = self._state
+        state.header.stamp.sec, state.header.stamp.nanosec = divmod(stamp_ns, _NS_PER_S)
+        state.position[0] = measured_m
+        state.velocity[0] = commanded_m_s
         if self._publishing:
             try:
-                self.state_publisher.publish(
-                    self._state.pack(stamp_ns, measured_m, commanded_m_s))
+                self.state_publisher.publish(state)
             except common.RCLError:
                 # Ctrl-C or SIGTERM invalidated the context before safe_stop() ended
                 # this thread: keep commanding the drive until then, stop publishing.

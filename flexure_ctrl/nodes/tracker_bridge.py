@@ -44,7 +44,6 @@ import time
 from typing import Dict, List, Optional, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from flexure_ctrl.core.cdr import PointStampedFrame
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.tracker import declared_targets, END_TARGET
 from flexure_ctrl.core.tracker import (DEFAULT_FIELDS, LineAssembler, parse_line,
@@ -168,7 +167,7 @@ class TrackerBridge(Node):
         self._last_valid_monotonic_ns: Optional[int] = None
         self._connected = False
 
-        self._outputs: Dict[str, Optional[Tuple[object, PointStampedFrame]]] = {}
+        self._outputs: Dict[str, Optional[Tuple[object, PointStamped]]] = {}
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                                            10)
         self.create_timer(1.0, self.publish_diagnostics)
@@ -337,8 +336,13 @@ class TrackerBridge(Node):
                 if output is None:
                     self.ignored += 1  # one target too many
                     continue
-                publisher, frame = output
-                publisher.publish(frame.pack(stamp_ns, x, y, z))
+                publisher, message = output
+                # The message is reused: publish() serialises it before returning.
+                message.header.stamp.sec, message.header.stamp.nanosec = divmod(
+                    stamp_ns, 1_000_000_000)
+                point = message.point
+                point.x, point.y, point.z = x, y, z
+                publisher.publish(message)
                 self.published += 1
         except RuntimeError:  # rclpy's RCLError, e.g. 'publisher's context is invalid'
             if self.context.ok():
@@ -354,7 +358,7 @@ class TrackerBridge(Node):
             f'{self.malformed} malformed lines so far',
             throttle_duration_sec=MALFORMED_LOG_PERIOD_S)
 
-    def _add_output(self, target: str) -> Optional[Tuple[object, PointStampedFrame]]:
+    def _add_output(self, target: str) -> Optional[Tuple[object, PointStamped]]:
         """Create a target's publisher; None (remembered) beyond MAX_TARGETS targets."""
         if len(self._outputs) >= MAX_TARGETS:
             self._outputs[target] = None
@@ -363,11 +367,12 @@ class TrackerBridge(Node):
                 f'published', throttle_duration_sec=MALFORMED_LOG_PERIOD_S)
             return None
         publisher = self.create_publisher(PointStamped, tracker_topic(target), point_qos())
-        frame = PointStampedFrame(self.frame_id)
-        self._outputs[target] = (publisher, frame)
-        return publisher, frame
+        message = PointStamped()
+        message.header.frame_id = self.frame_id
+        self._outputs[target] = (publisher, message)
+        return publisher, message
 
-    def _add_undeclared(self, target: str) -> Optional[Tuple[object, PointStampedFrame]]:
+    def _add_undeclared(self, target: str) -> Optional[Tuple[object, PointStamped]]:
         """Publish a target that ``targets`` does not list, from now on; warn once."""
         # Published rather than dropped: dropping would lose every point of a target the
         # rig user forgot to list (a characterisation target, say), publishing loses only
