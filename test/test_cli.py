@@ -17,6 +17,7 @@ from flexure_ctrl.core.kinematics import TwoLinkArm
 from flexure_ctrl.interface import (COMMAND_PATH_TOPIC, CORRECTION_TOPICS, DEMAND_PATH_TOPIC,
                                     END_TOPIC, RECORDER, RUN_TOPIC)
 from flexure_ctrl.nodes.common import destroy_rcl_node
+from geometry_msgs.msg import PointStamped
 from helpers import spin_in_thread, wait_for
 from lifecycle_msgs.srv import ChangeState
 from nav_msgs.msg import Path
@@ -227,7 +228,7 @@ def test_a_demo_runs_recorder_is_not_taken_for_the_one_of_the_run_before(tmp_pat
     rig = rclpy.create_node('rig_publishers', context=context)  # what it waits to record
     publishers = [rig.create_publisher(kind, topic, 1) for kind, topic in (
         (Path, DEMAND_PATH_TOPIC), (Path, COMMAND_PATH_TOPIC),
-        (DiagnosticStatus, RUN_TOPIC), (Path, END_TOPIC))]
+        (DiagnosticStatus, RUN_TOPIC), (PointStamped, END_TOPIC))]
     assert sorted(publisher.topic_name for publisher in publishers) == sorted(
         CORRECTION_TOPICS)
     try:

@@ -37,16 +37,6 @@ def point(t_ns, xy):
     return message
 
 
-def batch(points):
-    """Return tracker points ``[(t_ns, xy)]`` as the bridge publishes them: one Path."""
-    message = stamped(Path(), points[-1][0])
-    for t_ns, xy in points:
-        pose = stamped(PoseStamped(), t_ns)
-        pose.pose.position.x, pose.pose.position.y = float(xy[0]), float(xy[1])
-        message.poses.append(pose)
-    return message
-
-
 def path_message(path_start_ns, points_of_t):
     """Return a planned path as trajectory_generator publishes it: 100 points a second."""
     message = stamped(Path(), path_start_ns)
@@ -73,12 +63,9 @@ def realised(command_xy):
 
 
 def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=True,
-               noise_m=0.0, seed=0, states_gap_s=None, batch_size=10):
+               noise_m=0.0, seed=0, states_gap_s=None):
     """
     Record runs of the sine as the nodes publish them; return the bag folder.
-
-    :param batch_size: tracker points per ``nav_msgs/Path`` (the bridge's 20 ms at
-        500 Hz); None records one ``PointStamped`` each, as bags before batching hold.
 
     :param states_gap_s: (start, end) s of path time: with it, both loops' states are
         recorded at 100 Hz but for that span, where the loops did not cycle.
@@ -87,9 +74,7 @@ def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=Tr
     command_of_t = command_of_t or demand_of_t
     with BagWriter(folder) as bag:
         for topic, type_name in (('/flexure/run', 'diagnostic_msgs/msg/DiagnosticStatus'),
-                                 ('/flexure/tracker/end',
-                                  'geometry_msgs/msg/PointStamped' if batch_size is None
-                                  else 'nav_msgs/msg/Path'),
+                                 ('/flexure/tracker/end', 'geometry_msgs/msg/PointStamped'),
                                  ('/flexure/demand_path', 'nav_msgs/msg/Path'),
                                  ('/flexure/command_path', 'nav_msgs/msg/Path')):
             bag.add_topic(topic, type_name)
@@ -121,14 +106,8 @@ def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=Tr
             tracked = realised(command_of_t(tracker_path_s))[keep]
             if noise_m:
                 tracked = tracked + rng.normal(0.0, noise_m, tracked.shape)
-            points = [(int(t_ns), xy) for t_ns, xy in zip(tracker[keep], tracked)]
-            if batch_size is None:
-                events += [(t_ns, '/flexure/tracker/end', point(t_ns, xy))
-                           for t_ns, xy in points]
-            else:  # each batch logged when its last point came
-                events += [(chunk[-1][0], '/flexure/tracker/end', batch(chunk))
-                           for chunk in (points[i:i + batch_size]
-                                         for i in range(0, len(points), batch_size))]
+            for t_ns, xy in zip(tracker[keep], tracked):
+                events.append((int(t_ns), '/flexure/tracker/end', point(t_ns, xy)))
             if states_gap_s is not None:
                 for t_ns in range(run_start_ns, run_end_ns, 10**7):
                     t_s = (t_ns - path_start_ns) / 1e9
@@ -142,21 +121,6 @@ def write_runs(folder, path_starts_ns, command_of_t=None, drop=None, announce=Tr
             for t_ns, topic, message in sorted(events, key=lambda e: e[0]):
                 bag.write(topic, serialize_message(message), t_ns)
     return folder
-
-
-def test_batched_and_per_point_tracker_bags_read_the_same_runs(tmp_path):
-    # The bridge's batches (one Path of 10 points) and the bags recorded before it
-    # batched (one PointStamped a point) hold the same points: the runs read the same.
-    starts = [T0_NS, T0_NS + 20 * 10**9]
-    drop = lambda t: (t > 1.0) & (t < 1.5)  # noqa: E731
-    batched = load_runs(write_runs(tmp_path / 'batched', starts, drop=drop, noise_m=2e-5))
-    single = load_runs(write_runs(tmp_path / 'single', starts, drop=drop, noise_m=2e-5,
-                                  batch_size=None))
-    assert len(batched) == len(single) == 2
-    for a, b in zip(batched, single):
-        assert a.tracked_t_ns.size > 0.9 * 500 * (PERIOD_S - 0.5)
-        np.testing.assert_array_equal(a.tracked_t_ns, b.tracked_t_ns)
-        np.testing.assert_array_equal(a.tracked_m, b.tracked_m)
 
 
 def test_runs_are_split_and_aligned_to_their_path_start(tmp_path):

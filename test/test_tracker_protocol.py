@@ -3,8 +3,8 @@
 import math
 
 from flexure_ctrl.core.errors import FlexureCtrlError
-from flexure_ctrl.core.tracker import (format_line, LineAssembler, parse_line, PointBatcher,
-                                       RigTransform, rotation_from_rpy, TrackerFormatError,
+from flexure_ctrl.core.tracker import (format_line, LineAssembler, parse_line, RigTransform,
+                                       rotation_from_rpy, TrackerFormatError,
                                        TrackerLineFormat, TrackerParseError, TrackerSample,
                                        TransformError)
 import numpy as np
@@ -150,35 +150,6 @@ def test_line_assembler_drops_an_overlong_line_without_newline_and_recovers():
     assert assembler.overlong_lines == 2
     assert assembler.feed(b'x' * 16 + b'\r') == [] and assembler.pending_bytes == 17
     assert assembler.feed(b'\n') == [b'x' * 16]  # 16 bytes plus a split '\r\n' is fine
-
-
-def test_point_batcher_hands_out_each_target_once_its_oldest_point_has_waited():
-    batcher = PointBatcher(period_ns=20_000_000)
-    assert batcher.wait_s(0, 0.25) == 0.25  # nothing pending: block as long as idle
-    assert batcher.add(1_000_000, ['end', 'tip'], [10, 11], [(1, 2, 3), (4, 5, 6)]) == {}
-    assert batcher.wait_s(6_000_000, 0.25) == pytest.approx(0.015)
-    assert batcher.add(20_999_999, ['end'], [12], [(7, 8, 9)]) == {}  # 1 ns short of due
-    assert batcher.pending_points == 3
-    assert batcher.due(21_000_000) == {'end': [(10, (1, 2, 3)), (12, (7, 8, 9))],
-                                       'tip': [(11, (4, 5, 6))]}
-    assert batcher.pending_points == 0 and batcher.due(10**12) == {}
-    assert batcher.wait_s(10**12, 0.25) == 0.25
-    # The next batch's clock starts at its first point, not at the last hand-out.
-    assert batcher.add(50_000_000, ['end'], [13], [(0, 0, 0)]) == {}
-    assert batcher.wait_s(80_000_000, 0.25) == 0.0  # overdue: do not block
-    assert batcher.add(70_000_000, ['end'], [14], [(1, 1, 1)]) == {
-        'end': [(13, (0, 0, 0)), (14, (1, 1, 1))]}
-
-
-def test_point_batcher_without_a_period_hands_out_every_add_and_flushes_on_demand():
-    batcher = PointBatcher(period_ns=0)
-    assert batcher.add(5, ['end'], [1], [(1, 2, 3)]) == {'end': [(1, (1, 2, 3))]}
-    assert batcher.add(5, [], [], []) == {}
-    slow = PointBatcher(period_ns=10**9)
-    slow.add(0, ['end'], [1], [(1, 2, 3)])
-    assert slow.flush() == {'end': [(1, (1, 2, 3))]} and slow.flush() == {}
-    with pytest.raises(ValueError, match='period_ns'):
-        PointBatcher(period_ns=-1)
 
 
 def test_ninety_degree_rotations_map_axes_as_rep103_says():

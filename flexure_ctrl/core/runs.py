@@ -6,10 +6,9 @@ carries. A bag of ``flexure_ctrl`` topics holds, for each run, the demand and co
 paths published when it was armed (latched ``nav_msgs/Path``, their header stamp path
 time zero, each pose stamped with its path time), the run owner's words on
 ``/flexure/run`` (``ARMING`` when it was armed, then ``RUNNING``, and one that ends it),
-and the tracker's end points (in batches: :func:`tracked_points`). A run spans from its
-first word to the word that ended it (or its last word, if the recording stopped first);
-its demand and command are the paths sampled at :data:`RUN_RATE_HZ` over that span, held
-at their end points outside the path.
+and the tracker's end points. A run spans from its first word to the word that ended it
+(or its last word, if the recording stopped first); its demand and command are the paths
+sampled at :data:`RUN_RATE_HZ` over that span, held at their end points outside the path.
 """
 
 from pathlib import Path
@@ -33,18 +32,8 @@ def _stamp_ns(header) -> int:
     return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
 
 
-def tracked_points(message) -> List[Tuple[int, float, float]]:
-    """
-    Return a tracker message's points as ``(stamp ns, x m, y m)``.
-
-    The bridge publishes ``nav_msgs/Path`` batches (each pose with its own stamp); bags
-    recorded before it did hold one ``geometry_msgs/PointStamped`` per point, and still
-    read.
-    """
-    if hasattr(message, 'poses'):
-        return [(_stamp_ns(pose.header), float(pose.pose.position.x),
-                 float(pose.pose.position.y)) for pose in message.poses]
-    return [(_stamp_ns(message.header), float(message.point.x), float(message.point.y))]
+def _point(message) -> Tuple[float, float]:
+    return float(message.point.x), float(message.point.y)
 
 
 def _path_points(path) -> Tuple[np.ndarray, np.ndarray]:
@@ -97,7 +86,7 @@ def load_runs(bag_path: Union[str, Path]) -> List[RecordedRun]:
     for message, decoded in reader.decoded(CORRECTION_TOPICS):
         topic = message.topic
         if topic == END_TOPIC:
-            tracked.extend(tracked_points(decoded))
+            tracked.append((_stamp_ns(decoded.header), *_point(decoded)))
         elif topic == RUN_TOPIC:
             if decoded.name != RUN_STATUS_NAME:
                 continue

@@ -11,8 +11,7 @@ default line is::
 timestamp unit configurable; :func:`parse_line` turns a line into a
 :class:`TrackerSample` (tracker frame, metres, integer nanoseconds) and
 :func:`format_line` is its inverse. :class:`LineAssembler` cuts a TCP byte stream into
-lines, :class:`RigTransform` maps points from the tracker frame into the rig frame, and
-:class:`PointBatcher` gathers each target's points into the batches the bridge publishes.
+lines, and :class:`RigTransform` maps points from the tracker frame into the rig frame.
 
 Rules of a line (the README documents them for tracker integrators):
 
@@ -38,7 +37,7 @@ from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation, ROUND_HALF_EVEN
 import math
 import re
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import List, Sequence, Tuple, Union
 
 from flexure_ctrl.core.errors import FlexureCtrlError
 import numpy as np
@@ -341,70 +340,6 @@ def format_line(sample: TrackerSample, fmt: TrackerLineFormat = DEFAULT_FORMAT) 
         values[name] = f'{coordinate:.{decimals}f}' if math.isfinite(coordinate) else 'nan'
     filler = '-' if fmt._split_on_whitespace else ''  # an empty column would vanish there
     return fmt.delimiter.join(values.get(name, filler) for name in fmt.fields) + '\n'
-
-
-# One tracked point: its stamp (ns) and rig-frame coordinates (m).
-TrackedPoint = Tuple[int, Tuple[float, float, float]]
-
-
-class PointBatcher:
-    """
-    Gather each target's points into batches, one per target every ``period_ns``.
-
-    Why batch: a tracker streams 200-1000 points/s, and under rclpy one message costs a
-    subscriber far more than its bytes (a subscriber of 500 points/s took 0.13-0.20
-    of the CPU as 50 messages/s of 10 points each). Each point keeps its own stamp, so batching
-    loses nothing a reader of the stream needs; it only delays a point by up to
-    ``period_ns``. Time is passed in (monotonic ns); the batcher owns no clock or thread.
-
-    :param period_ns: longest a point waits in a batch (ns); 0 hands out every batch at
-        once (one per target per :meth:`add`).
-    """
-
-    def __init__(self, period_ns: int) -> None:
-        if period_ns < 0:
-            raise ValueError(f'period_ns must be at least 0, got {period_ns}')
-        self.period_ns = int(period_ns)
-        self._pending: Dict[str, List[TrackedPoint]] = {}
-        self._first_ns: Optional[int] = None  # when the oldest pending point came
-
-    @property
-    def pending_points(self) -> int:
-        """Points added and not yet handed out."""
-        return sum(len(points) for points in self._pending.values())
-
-    def add(self, now_ns: int, targets: Sequence[str], stamps_ns: Sequence[int],
-            points_m: Sequence[Sequence[float]]) -> Dict[str, List[TrackedPoint]]:
-        """
-        Add points that came at ``now_ns``; return the batches due then (see :meth:`due`).
-
-        :param targets: each point's target name.
-        :param stamps_ns: each point's stamp (ns).
-        :param points_m: each point's rig-frame ``(x, y, z)`` (m).
-        """
-        pending = self._pending
-        for target, stamp_ns, (x, y, z) in zip(targets, stamps_ns, points_m):
-            pending.setdefault(target, []).append((stamp_ns, (x, y, z)))
-        if self._first_ns is None and pending:
-            self._first_ns = now_ns
-        return self.due(now_ns)
-
-    def due(self, now_ns: int) -> Dict[str, List[TrackedPoint]]:
-        """Hand out every target's batch if the oldest point has waited ``period_ns``."""
-        if self._first_ns is None or now_ns - self._first_ns < self.period_ns:
-            return {}
-        return self.flush()
-
-    def flush(self) -> Dict[str, List[TrackedPoint]]:
-        """Hand out every pending batch now, in the order the targets first came."""
-        batches, self._pending, self._first_ns = self._pending, {}, None
-        return batches
-
-    def wait_s(self, now_ns: int, idle_s: float) -> float:
-        """How long a reader may block (s) before a batch is due; ``idle_s`` when none is."""
-        if self._first_ns is None:
-            return idle_s
-        return min(idle_s, max(0.0, (self._first_ns + self.period_ns - now_ns) * 1e-9))
 
 
 class LineAssembler:

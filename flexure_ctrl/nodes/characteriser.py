@@ -28,11 +28,10 @@ from typing import Callable, Optional
 
 from flexure_ctrl.core.characterisation import (CharacterisationError, CommandConflictError,
                                                 RunAborted, SweepRunner)
-from flexure_ctrl.core.runs import tracked_points
 from flexure_ctrl.interface import (ACTUATOR_NAMES, actuator_state_topic, CHARACTERISER,
                                     SETPOINTS_TOPIC, tracker_topic, TRAJECTORY_GENERATOR)
 from flexure_ctrl.nodes.common import leaves_no_half_built_node
-from nav_msgs.msg import Path
+from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -107,7 +106,7 @@ class Characteriser(Node):
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         for target in runner.target_names:
             self.create_subscription(
-                Path, tracker_topic(target),
+                PointStamped, tracker_topic(target),
                 lambda message, target=target: self._on_point(target, message), qos)
         self.create_service(Trigger, '~/abort', self._on_abort)
         self.timer = self.create_timer(1.0 / rate_hz, self._tick)
@@ -124,10 +123,9 @@ class Characteriser(Node):
         elif self.phase == 'waiting':
             self._other_samples.append(position_m)
 
-    def _on_point(self, target: str, message: Path) -> None:
+    def _on_point(self, target: str, message: PointStamped) -> None:
         self._seen_targets.add(target)
-        for stamp_ns, x_m, y_m in tracked_points(message):
-            self.runner.add_target(target, stamp_ns, (x_m, y_m))
+        self.runner.add_target(target, _stamp_ns(message), (message.point.x, message.point.y))
 
     def _on_abort(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:

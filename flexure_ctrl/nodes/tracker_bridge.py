@@ -5,13 +5,7 @@ A reader thread owns the TCP connection to the tracker: it connects, cuts the by
 stream into lines, parses them (:mod:`flexure_ctrl.core.tracker`), maps the valid points
 of each TCP chunk from the tracker frame into the rig frame in one vectorised step
 (``p_rig = R(rpy) p_tracker + t``) and publishes them on ``/flexure/tracker/<target>``
-as ``nav_msgs/Path`` batches (frame ``rig``, m): every ``batch_period_s`` (20 ms by
-default) one message per target, each pose stamped with its own point's time, the
-message's header with its last point's time. Why batches: at the tracker's 500 points/s,
-one message per point cost the recorder (the stream's one subscriber during a run) 5-8
-times the CPU of the same points in 50 batches/s (:class:`flexure_ctrl.core.tracker.
-PointBatcher`); a point is delayed by at most ``batch_period_s``, and 0 publishes each TCP
-chunk's points as they come.
+(``geometry_msgs/PointStamped``, frame ``rig``, m).
 
 Targets: the publishers of the targets in ``targets`` (``end`` always among them) are
 created at start, so a subscriber connects before the tracker's first point and none is
@@ -53,14 +47,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from flexure_ctrl.core.errors import FlexureCtrlError
 from flexure_ctrl.core.tracker import declared_targets, END_TARGET
 from flexure_ctrl.core.tracker import (DEFAULT_FIELDS, LineAssembler, parse_line,
-                                       PointBatcher, RigTransform, TrackedPoint,
-                                       TrackerLineFormat, TrackerParseError)
+                                       RigTransform, TrackerLineFormat, TrackerParseError)
 from flexure_ctrl.interface import DIAGNOSTICS_TOPIC, TRACKER_BRIDGE, tracker_topic
 from flexure_ctrl.nodes.common import (float_descriptor, int_descriptor,
                                        leaves_no_half_built_node, RIG_FRAME, run_node,
                                        typed_descriptor)
-from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Path
+from geometry_msgs.msg import PointStamped
 import numpy as np
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
@@ -75,8 +67,6 @@ CONNECT_TIMEOUT_S = 2.0
 # recv() wakes at least this often to notice a stop request.
 RECV_TIMEOUT_S = 0.25
 RECV_BYTES = 65536
-# Shortest recv() timeout: 0 would make the socket non-blocking.
-_MIN_WAIT_S = 1e-4
 MALFORMED_LOG_PERIOD_S = 5.0
 CONNECT_FAILURE_LOG_PERIOD_S = 30.0
 # builtin_interfaces/Time.sec is an int32: a later tracker timestamp cannot be published.
@@ -140,10 +130,6 @@ class TrackerBridge(Node):
             string, 'frame of the published points', read_only=True))
         declare('max_line_bytes', 1024, int_descriptor(
             'longer lines are dropped as malformed (bytes)', 64, 65536, read_only=True))
-        declare('batch_period_s', 0.02, float_descriptor(
-            "each target's points are published together at most this often (s); a point "
-            "waits at most this long; 0 publishes each TCP chunk's points at once",
-            0.0, 1.0, read_only=True))
         declare('stale_after_s', 1.0, float_descriptor(
             'diagnostics warn after this long without a valid sample (s)', 0.01, 60.0,
             read_only=True))
@@ -166,12 +152,10 @@ class TrackerBridge(Node):
         self.frame_id = value('frame_id')
         self.stale_after_ns = int(value('stale_after_s') * 1e9)
         self._assembler = LineAssembler(value('max_line_bytes'))
-        self._batcher = PointBatcher(int(round(value('batch_period_s') * 1e9)))
 
         # Counters: written by the reader thread only, read by the diagnostics timer.
         self.lines = 0
-        self.published = 0  # points
-        self.messages = 0  # batches
+        self.published = 0
         self.invalid_status = 0
         self.malformed = 0
         self.ignored = 0
@@ -183,7 +167,7 @@ class TrackerBridge(Node):
         self._last_valid_monotonic_ns: Optional[int] = None
         self._connected = False
 
-        self._outputs: Dict[str, Optional[object]] = {}
+        self._outputs: Dict[str, Optional[Tuple[object, PointStamped]]] = {}
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC,
                                                            10)
         self.create_timer(1.0, self.publish_diagnostics)
@@ -197,8 +181,7 @@ class TrackerBridge(Node):
         self.get_logger().info(
             f'reading the tracker at {self.host}:{self.port} ({",".join(self.format.fields)}'
             f', delimiter {self.format.delimiter!r}); {self.transform}; stamps: '
-            f'{self.stamp_source}; targets: {",".join(self.declared_targets)}; batches every '
-            f'{self._batcher.period_ns * 1e-9:g} s')
+            f'{self.stamp_source}; targets: {",".join(self.declared_targets)}')
         self._reader = threading.Thread(target=self._run_reader, daemon=True,
                                         name='tracker-reader')
         self._reader.start()
@@ -276,17 +259,11 @@ class TrackerBridge(Node):
         receive_stamps = self.stamp_source == 'receive'
         clock = self.get_clock()
         reason = 'closed by the tracker'
-        batcher = self._batcher
         try:
             while not self._stop.is_set():
-                # recv() wakes when the oldest pending point is due, to publish its batch
-                # in time even if the tracker falls silent.
-                sock.settimeout(max(batcher.wait_s(time.monotonic_ns(), RECV_TIMEOUT_S),
-                                    _MIN_WAIT_S))
                 try:
                     chunk = sock.recv(RECV_BYTES)
                 except TimeoutError:
-                    self._publish(batcher.due(time.monotonic_ns()))
                     continue
                 if not chunk:
                     break
@@ -295,7 +272,6 @@ class TrackerBridge(Node):
         except OSError as error:
             reason = str(error)
         finally:
-            self._publish(batcher.flush())  # points of a closing connection are not lost
             self._connected = False
             with self._socket_lock:
                 self._socket = None
@@ -345,41 +321,29 @@ class TrackerBridge(Node):
             targets.append(sample.target)
             stamps_ns.append(stamp_ns)
             points_m.append(sample.point_m)
-        now_ns = time.monotonic_ns()
         if not targets:
-            self._publish(self._batcher.due(now_ns))
             return
         points_rig = self.transform.apply(np.array(points_m)).tolist()
-        self._last_valid_monotonic_ns = now_ns
-        self._publish(self._batcher.add(now_ns, targets, stamps_ns, points_rig))
+        self._last_valid_monotonic_ns = time.monotonic_ns()
+        self._publish(targets, stamps_ns, points_rig)
 
-    def _publish(self, batches: Dict[str, List[TrackedPoint]]) -> None:
-        """Publish each target's batch as one ``nav_msgs/Path``."""
+    def _publish(self, targets: List[str], stamps_ns: List[int],
+                 points_rig: List[List[float]]) -> None:
         outputs = self._outputs
-        frame_id = self.frame_id
         try:
-            for target, points in batches.items():
-                publisher = outputs[target] if target in outputs else self._add_undeclared(
-                    target)
-                if publisher is None:
-                    self.ignored += len(points)  # one target too many
+            for target, stamp_ns, (x, y, z) in zip(targets, stamps_ns, points_rig):
+                output = outputs[target] if target in outputs else self._add_undeclared(target)
+                if output is None:
+                    self.ignored += 1  # one target too many
                     continue
-                message = Path()
-                message.header.frame_id = frame_id
-                poses = []
-                for stamp_ns, (x, y, z) in points:
-                    pose = PoseStamped()
-                    pose.header.frame_id = frame_id
-                    pose.header.stamp.sec, pose.header.stamp.nanosec = divmod(
-                        stamp_ns, 1_000_000_000)
-                    position = pose.pose.position
-                    position.x, position.y, position.z = x, y, z
-                    poses.append(pose)
-                message.poses = poses
-                message.header.stamp = poses[-1].header.stamp
+                publisher, message = output
+                # The message is reused: publish() serialises it before returning.
+                message.header.stamp.sec, message.header.stamp.nanosec = divmod(
+                    stamp_ns, 1_000_000_000)
+                point = message.point
+                point.x, point.y, point.z = x, y, z
                 publisher.publish(message)
-                self.published += len(points)
-                self.messages += 1
+                self.published += 1
         except RuntimeError:  # rclpy's RCLError, e.g. 'publisher's context is invalid'
             if self.context.ok():
                 raise
@@ -394,7 +358,7 @@ class TrackerBridge(Node):
             f'{self.malformed} malformed lines so far',
             throttle_duration_sec=MALFORMED_LOG_PERIOD_S)
 
-    def _add_output(self, target: str) -> Optional[object]:
+    def _add_output(self, target: str) -> Optional[Tuple[object, PointStamped]]:
         """Create a target's publisher; None (remembered) beyond MAX_TARGETS targets."""
         if len(self._outputs) >= MAX_TARGETS:
             self._outputs[target] = None
@@ -402,11 +366,13 @@ class TrackerBridge(Node):
                 f'more than {MAX_TARGETS} targets seen: points of {target!r} are not '
                 f'published', throttle_duration_sec=MALFORMED_LOG_PERIOD_S)
             return None
-        publisher = self.create_publisher(Path, tracker_topic(target), point_qos())
-        self._outputs[target] = publisher
-        return publisher
+        publisher = self.create_publisher(PointStamped, tracker_topic(target), point_qos())
+        message = PointStamped()
+        message.header.frame_id = self.frame_id
+        self._outputs[target] = (publisher, message)
+        return publisher, message
 
-    def _add_undeclared(self, target: str) -> Optional[object]:
+    def _add_undeclared(self, target: str) -> Optional[Tuple[object, PointStamped]]:
         """Publish a target that ``targets`` does not list, from now on; warn once."""
         # Published rather than dropped: dropping would lose every point of a target the
         # rig user forgot to list (a characterisation target, say), publishing loses only
@@ -432,7 +398,6 @@ class TrackerBridge(Node):
             'address': f'{self.host}:{self.port}',
             'lines': self.lines,
             'published': self.published,
-            'messages': self.messages,
             'invalid_status': self.invalid_status,
             'malformed': self.malformed,
             'ignored': self.ignored,
