@@ -127,3 +127,39 @@ def test_learner_keeps_each_actuators_reversal_weighted_mean():
     assert learner.add_run('actuator_1', *loop_run(1e-4, amplitude_m=0.0)) is None
     assert len(learner.estimates['actuator_1']) == 2
     assert learner.backlash_m('actuator_2') == 0.0
+
+
+def short_stroke_out_of_rest(backlash_m=2.6e-4, lag_s=0.09):
+    """
+    Return open-loop cycles (500 Hz, the pot read every cycle) with a short first stroke.
+
+    From rest with the nut at the far side of its band: a 0.36 mm stroke, a reversal into
+    a 6 mm stroke, another reversal. The first stroke ends with the nut still inside the
+    band; the second reversal is a clean one.
+    """
+    actuator = LeadScrewActuator(
+        LeadScrewParameters(lag_s=lag_s, max_speed_m_s=0.02, backlash_m=backlash_m,
+                            pot_noise_m=0.0, pot_quantum_m=1e-6, end_stop_m=0.05),
+        np.random.default_rng(1), initial_position_m=0.0,
+        initial_nut_offset_m=-0.5 * backlash_m)
+    segments = [(0.5, 0.0), (0.4, 9e-4), (2.0, -3e-3), (2.0, 3e-3), (0.5, 0.0)]
+    velocity = np.concatenate([np.full(int(round(d / 0.002)), v) for d, v in segments])
+    cycles = []
+    for i, command_m_s in enumerate(velocity):
+        cycles.append((i * 0.002, actuator.pot_reading_m(), command_m_s))
+        for _ in range(2):
+            actuator.step(command_m_s, PHYSICS_DT_S)
+    return tuple(np.array(cycles).T)
+
+
+def test_a_short_stroke_out_of_rest_is_not_taken_for_a_reversal():
+    t_s, pot_m, velocity_m_s = short_stroke_out_of_rest()
+    estimate = fit(t_s, pot_m, velocity_m_s)
+    assert estimate.reversals == 1
+    assert estimate.backlash_m == pytest.approx(2.6e-4, abs=4e-6)
+    assert estimate.lag_s == pytest.approx(0.09, abs=0.011)
+    # Counted, the short stroke's reversal spoils the fit (the play it assumes at the
+    # window's start is not the nut's).
+    spoiled = estimate_from_cycles(t_s, pot_m, velocity_m_s, min_stroke_travel_m=0.0)
+    assert spoiled.reversals == 2
+    assert abs(spoiled.backlash_m - 2.6e-4) > 2e-5

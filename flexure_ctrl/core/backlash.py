@@ -31,6 +31,12 @@ DEFAULT_WINDOW_S = 0.6
 DEFAULT_MIN_SPEED_M_S = 5e-4
 DEFAULT_MIN_STROKE_S = 0.2
 DEFAULT_MAX_BACKLASH_M = 1e-3
+# The fit's play starts each window with the nut pushing the rod. That holds once the
+# stroke before the reversal has carried the nut across the widest band the fit considers
+# before the window starts; a short stroke out of a rest (the path's first move after a
+# corrected lead-in) may leave the nut inside the band, and a misfit there took a 0.26 mm
+# backlash for 0.002 mm with a lag of 180 ms.
+DEFAULT_MIN_STROKE_TRAVEL_M = DEFAULT_MAX_BACKLASH_M
 DEFAULT_LAGS_S = tuple(np.round(np.arange(0.0, 0.2501, 0.01), 3))
 DEFAULT_BACKLASH_STEP_M = 2e-6
 
@@ -71,14 +77,16 @@ def commanded_travel(t_s: np.ndarray, velocity_m_s: np.ndarray) -> np.ndarray:
 
 
 def _reversal_windows(t_s: np.ndarray, velocity_m_s: np.ndarray, window_s: float,
-                      min_speed_m_s: float, min_stroke_s: float) -> List[Tuple[int, int, int]]:
+                      min_speed_m_s: float, min_stroke_s: float,
+                      min_travel_m: float) -> List[Tuple[int, int, int]]:
     """
     Return ``(start, stop, side)`` of a window ``[start, stop)`` around each reversal.
 
     A reversal joins two strokes, each at least ``min_stroke_s`` long above
     ``min_speed_m_s``, that go opposite ways with less than ``window_s`` between them;
-    ``side`` is the way of the first. A loop holding still dithers on its noise: those
-    back-and-forths are too short to count.
+    ``side`` is the way of the first, which must have travelled ``min_travel_m`` (m)
+    before the window (see :data:`DEFAULT_MIN_STROKE_TRAVEL_M`). A loop holding still
+    dithers on its noise: those back-and-forths are too short to count.
     """
     sign = np.where(velocity_m_s > min_speed_m_s, 1,
                     np.where(velocity_m_s < -min_speed_m_s, -1, 0))
@@ -87,8 +95,10 @@ def _reversal_windows(t_s: np.ndarray, velocity_m_s: np.ndarray, window_s: float
     stops = np.concatenate([edges, [sign.shape[0]]])
     strokes = [(start, stop, int(sign[start])) for start, stop in zip(starts, stops)
                if sign[start] != 0 and t_s[stop - 1] - t_s[start] >= min_stroke_s]
+    travel_m = np.concatenate([[0.0], np.cumsum(velocity_m_s[:-1] * np.diff(t_s))])
     windows: List[Tuple[int, int, int]] = []
-    for (_, first_stop, first), (second_start, _, second) in zip(strokes[:-1], strokes[1:]):
+    for (first_start, first_stop, first), (second_start, _, second) in zip(strokes[:-1],
+                                                                           strokes[1:]):
         if first == second or t_s[second_start] - t_s[first_stop - 1] > window_s:
             continue
         centre_s = 0.5 * (t_s[first_stop - 1] + t_s[second_start])
@@ -96,6 +106,9 @@ def _reversal_windows(t_s: np.ndarray, velocity_m_s: np.ndarray, window_s: float
             continue
         start = int(np.searchsorted(t_s, centre_s - window_s))
         stop = int(np.searchsorted(t_s, centre_s + window_s))
+        # (A window that starts before its first stroke has that stroke's travel at 0.)
+        if first * (travel_m[max(start, first_start)] - travel_m[first_start]) < min_travel_m:
+            continue
         windows.append((start, stop, first))
     return windows
 
@@ -136,6 +149,7 @@ def estimate_backlash(t_s: np.ndarray, pot_m: np.ndarray, travel_m: np.ndarray,
                       window_s: float = DEFAULT_WINDOW_S,
                       min_speed_m_s: float = DEFAULT_MIN_SPEED_M_S,
                       min_stroke_s: float = DEFAULT_MIN_STROKE_S,
+                      min_stroke_travel_m: float = DEFAULT_MIN_STROKE_TRAVEL_M,
                       max_backlash_m: float = DEFAULT_MAX_BACKLASH_M,
                       lags_s=DEFAULT_LAGS_S,
                       backlash_step_m: float = DEFAULT_BACKLASH_STEP_M) -> BacklashEstimate:
@@ -148,6 +162,8 @@ def estimate_backlash(t_s: np.ndarray, pot_m: np.ndarray, travel_m: np.ndarray,
     :param window_s: half-width (s) of the window fitted around each reversal.
     :param min_speed_m_s: commanded speed (m/s) that counts as moving one way.
     :param min_stroke_s: shortest motion one way (s) that counts as a stroke.
+    :param min_stroke_travel_m: commanded travel (m) the stroke before a reversal must
+        have made before the window fitted around it starts.
     :param max_backlash_m: largest backlash (m) the fit considers.
     :param lags_s: the drive lags (s) the fit tries.
     :param backlash_step_m: resolution (m) of the fitted backlash.
@@ -170,7 +186,8 @@ def estimate_backlash(t_s: np.ndarray, pot_m: np.ndarray, travel_m: np.ndarray,
     # take-up already running must not count as reversals of their own.
     smooth = max(1, int(round(0.05 / float(np.median(dt_s)))))
     smoothed = np.convolve(velocity_m_s, np.ones(smooth) / smooth, mode='same')
-    windows = _reversal_windows(t_s, smoothed, window_s, min_speed_m_s, min_stroke_s)
+    windows = _reversal_windows(t_s, smoothed, window_s, min_speed_m_s, min_stroke_s,
+                                min_stroke_travel_m)
     if not windows:
         raise BacklashEstimateError('the motion has no clean reversal to measure at')
     half_widths_m = 0.5 * np.arange(0.0, max_backlash_m + 0.5 * backlash_step_m,
