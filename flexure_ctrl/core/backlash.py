@@ -34,8 +34,8 @@ DEFAULT_MAX_BACKLASH_M = 1e-3
 # The fit's play starts each window with the nut pushing the rod. That holds once the
 # stroke before the reversal has carried the nut across the widest band the fit considers
 # before the window starts; a short stroke out of a rest (the path's first move after a
-# corrected lead-in) may leave the nut inside the band, and a misfit there took a 0.26 mm
-# backlash for 0.002 mm with a lag of 180 ms.
+# corrected lead-in) may leave the nut inside the band, and one such window spoils the
+# joint fit of every other.
 DEFAULT_MIN_STROKE_TRAVEL_M = DEFAULT_MAX_BACKLASH_M
 DEFAULT_LAGS_S = tuple(np.round(np.arange(0.0, 0.2501, 0.01), 3))
 DEFAULT_BACKLASH_STEP_M = 2e-6
